@@ -1,0 +1,77 @@
+"""Throughput of the PPO rollout (policy sampling included) against raw vmapped ``env.step``.
+
+Both run T_max steps of B fresh episodes in one jitted ``lax.scan`` on the same family and batch; "raw"
+feeds precomputed actions to ``family.step``, "rollout" is ``jcomps.acting.rollout`` with a [128, 64]
+Gaussian policy. One line per case, ``key=value`` pairs ending in ``ratio=<rollout/raw>``.
+
+    python benchmarks/bench_rollout.py [--families cheetah_vel ant_goal] [--batches 20 256] [--repeats 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import jax
+import jax.numpy as jnp
+
+from jcomps import acting, envs, ppo
+
+
+def _time(fn, *args, repeats):
+    start = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    compile_s = time.perf_counter() - start
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        best = min(best, time.perf_counter() - start)
+    return compile_s, best
+
+
+def bench(name: str, batch: int, repeats: int) -> str:
+    family = envs.make(name)
+    task = envs.task_at(family, 0)
+    policy = ppo.init_params(ppo.PPOConfig(), family, jax.random.PRNGKey(0)).policy
+    actions = 0.5 * jax.random.normal(jax.random.PRNGKey(1), (family.max_steps, batch, family.action_size))
+
+    @jax.jit
+    def raw(rng, actions):
+        state = jax.vmap(family.reset, (0, None))(jax.random.split(rng, batch), task)
+        step = jax.vmap(family.step, (0, 0, None))
+        _, rewards = jax.lax.scan(lambda s, a: _raw_body(step, s, a, task), state, actions)
+        return rewards
+
+    @jax.jit
+    def roll(rng, policy):
+        return acting.rollout(family, policy, task, rng, batch).reward
+
+    rng = jax.random.PRNGKey(2)
+    raw_compile, raw_s = _time(raw, rng, actions, repeats=repeats)
+    roll_compile, roll_s = _time(roll, rng, policy, repeats=repeats)
+    steps = family.max_steps * batch
+    return (f"family={name} batch={batch} steps={steps} raw_steps_per_s={steps / raw_s:.0f} "
+            f"rollout_steps_per_s={steps / roll_s:.0f} raw_compile_s={raw_compile:.1f} "
+            f"rollout_compile_s={roll_compile:.1f} ratio={raw_s / roll_s:.3f}")
+
+
+def _raw_body(step, state, action, task):
+    nxt = step(state, action, task)
+    return nxt, nxt.reward
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--families", nargs="+", default=["cheetah_vel", "ant_goal"], choices=envs.FAMILIES)
+    parser.add_argument("--batches", nargs="+", type=int, default=[20, 256])
+    parser.add_argument("--repeats", type=int, default=5)
+    args = parser.parse_args()
+    print(f"backend={jax.default_backend()} devices={jax.device_count()}", flush=True)
+    for name in args.families:
+        for batch in args.batches:
+            print(bench(name, batch, args.repeats), flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,55 @@
+"""Acting: collect a batch of trajectories with a policy, as a ``lax.scan`` over time of vmapped envs.
+
+Array convention (everywhere in jcomps): trajectories are time-major, ``[T, B, ...]``.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from jcomps import networks
+from jcomps.envs.base import Family
+
+
+class Trajectory(NamedTuple):
+    """A batch of B episodes of T = T_max steps, time-major.
+
+    Attributes:
+      obs: f32[T, B, obs_size], observation at which each action was taken.
+      action: f32[T, B, A], the action sampled (before the env clips it to [-1, 1]).
+      log_prob: f32[T, B], log-probability of ``action`` under the behaviour policy.
+      reward: f32[T, B], reward of the transition (0 after termination).
+      done: f32[T, B], 1 where this transition terminated the episode (no bootstrap past it).
+      valid: f32[T, B], 1 where the step was taken by a live episode (0 after termination).
+      success: f32[T, B], the family's per-step success indicator.
+      last_obs: f32[B, obs_size], observation after the last step; its value bootstraps the truncation at T.
+    """
+
+    obs: jax.Array
+    action: jax.Array
+    log_prob: jax.Array
+    reward: jax.Array
+    done: jax.Array
+    valid: jax.Array
+    success: jax.Array
+    last_obs: jax.Array
+
+
+def rollout(family: Family, policy: dict, task, rng: jax.Array, num_envs: int) -> Trajectory:
+    """Runs ``num_envs`` fresh episodes of ``task`` for ``family.max_steps`` steps with the Gaussian ``policy``."""
+    reset_rng, step_rng = jax.random.split(rng)
+    state = jax.vmap(family.reset, (0, None))(jax.random.split(reset_rng, num_envs), task)
+    step = jax.vmap(family.step, (0, 0, None))
+
+    def body(state, key):
+        action, log_prob = networks.sample_action(policy, state.obs, key)
+        nxt = step(state, action, task)
+        valid = 1.0 - state.done
+        done = nxt.done * valid
+        return nxt, Trajectory(state.obs, action, log_prob, nxt.reward, done, valid, nxt.success, None)
+
+    state, traj = jax.lax.scan(body, state, jax.random.split(step_rng, family.max_steps))
+    return traj._replace(last_obs=state.obs)

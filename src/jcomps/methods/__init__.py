@@ -1,0 +1,33 @@
+"""Continual-learning methods, registered by name; every one implements ``jcomps.methods.base.Method``."""
+
+from __future__ import annotations
+
+from jcomps.envs.base import Family
+from jcomps.methods import ppo_tl
+from jcomps.methods.base import Method, TaskMetrics
+
+# name -> (config class, constructor(family, config) -> Method)
+REGISTRY = {
+    "ppo_tl": (ppo_tl.PPOTLConfig, ppo_tl.make),
+}
+METHODS = tuple(REGISTRY)
+
+
+def config_class(name: str):
+    """The config dataclass of method ``name``."""
+    if name not in REGISTRY:
+        raise ValueError(f"unknown method {name!r}; allowed: {', '.join(METHODS)}")
+    return REGISTRY[name][0]
+
+
+def make(name: str, family: Family, config=None) -> Method:
+    """Method ``name`` (one of ``METHODS``) on ``family`` with ``config`` (default: the paper's defaults)."""
+    cls = config_class(name)
+    if config is None:
+        config = cls()
+    if not isinstance(config, cls):
+        raise TypeError(f"method {name!r} takes a {cls.__name__}, got {type(config).__name__}")
+    return REGISTRY[name][1](family, config)
+
+
+__all__ = ["METHODS", "Method", "REGISTRY", "TaskMetrics", "config_class", "make"]

@@ -1,0 +1,50 @@
+"""The one interface every continual-learning method implements.
+
+A method is data plus pure functions (as in optax):
+
+- ``method.init(rng) -> State``: the method's whole state (parameters, optimiser states, rng, counters).
+- ``method.learn_task(state, task) -> (State, TaskMetrics)``: learn one task of the sequence.
+
+``config`` and ``family`` are bound when the method is made, so both functions are jittable with array
+arguments only; the continual loop (``jcomps.continual``) never knows which method it runs.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, NamedTuple
+
+import jax
+
+from jcomps.ppo import IterationMetrics
+
+
+class TaskMetrics(NamedTuple):
+    """What ``learn_task`` reports about one task.
+
+    Attributes:
+      iterations: i32[], iterations-to-success (the budget if the threshold was never reached).
+      solved: bool[], whether the success threshold was reached within the budget.
+      per_iteration: IterationMetrics with fields of length ``budget``, masked by ``per_iteration.valid``.
+    """
+
+    iterations: jax.Array
+    solved: jax.Array
+    per_iteration: IterationMetrics
+
+
+class Method(NamedTuple):
+    """A continual-learning method bound to a family and a config.
+
+    Attributes:
+      name: registry name (e.g. ``ppo_tl``).
+      config: the method's frozen config dataclass.
+      family: the task family it learns on.
+      init: ``rng -> State``.
+      learn_task: ``(State, task) -> (State, TaskMetrics)``.
+    """
+
+    name: str
+    config: Any
+    family: Any
+    init: Callable[[jax.Array], Any]
+    learn_task: Callable[[Any, Any], tuple[Any, TaskMetrics]]

@@ -1,0 +1,86 @@
+"""Networks: a Gaussian MLP policy with a state-independent log-std, and an MLP value function.
+
+Parameters are plain pytrees (nested dicts of arrays) so they can be differentiated through, stacked over
+seeds and tasks, and checkpointed without any object state.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple, Sequence
+
+import jax
+import jax.numpy as jnp
+
+LOG_2PI = math.log(2.0 * math.pi)
+
+
+def mlp_init(rng: jax.Array, sizes: Sequence[int], final_scale: float = 1.0) -> list[dict]:
+    """Layers ``sizes[0] -> ... -> sizes[-1]``: orthogonal(√2) hidden weights, ``final_scale`` last, zero biases."""
+    layers = []
+    keys = jax.random.split(rng, len(sizes) - 1)
+    for i, (key, n_in, n_out) in enumerate(zip(keys, sizes[:-1], sizes[1:])):
+        scale = final_scale if i == len(sizes) - 2 else math.sqrt(2.0)
+        w = jax.nn.initializers.orthogonal(scale)(key, (n_in, n_out), jnp.float32)
+        layers.append({"w": w, "b": jnp.zeros((n_out,), jnp.float32)})
+    return layers
+
+
+def mlp_apply(layers: list[dict], x: jax.Array) -> jax.Array:
+    """tanh MLP over the last axis of ``x``; the last layer is linear."""
+    for layer in layers[:-1]:
+        x = jnp.tanh(x @ layer["w"] + layer["b"])
+    return x @ layers[-1]["w"] + layers[-1]["b"]
+
+
+class ActorCriticParams(NamedTuple):
+    """policy: {'mean': MLP layers, 'log_std': f32[action_size]}; value: MLP layers with one output."""
+
+    policy: dict
+    value: list
+
+
+def init_actor_critic(rng: jax.Array, obs_size: int, action_size: int, hidden_sizes: Sequence[int],
+                      init_std: float) -> ActorCriticParams:
+    """Fresh policy (mean MLP with small last layer, log-std = log ``init_std``) and value MLP."""
+    k_pi, k_v = jax.random.split(rng)
+    sizes = (obs_size, *hidden_sizes)
+    policy = {
+        "mean": mlp_init(k_pi, (*sizes, action_size), final_scale=0.01),
+        "log_std": jnp.full((action_size,), math.log(init_std), dtype=jnp.float32),
+    }
+    return ActorCriticParams(policy=policy, value=mlp_init(k_v, (*sizes, 1), final_scale=1.0))
+
+
+def policy_dist(policy: dict, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Mean f32[..., A] and log-std f32[A] of the Gaussian policy at ``obs`` f32[..., obs_size]."""
+    return mlp_apply(policy["mean"], obs), policy["log_std"]
+
+
+def gaussian_log_prob(mean: jax.Array, log_std: jax.Array, action: jax.Array) -> jax.Array:
+    """log N(action; mean, exp(log_std)²), summed over the last (action) axis."""
+    z = (action - mean) * jnp.exp(-log_std)
+    return jnp.sum(-0.5 * jnp.square(z) - log_std - 0.5 * LOG_2PI, axis=-1)
+
+
+def gaussian_entropy(log_std: jax.Array) -> jax.Array:
+    """Entropy of the diagonal Gaussian with ``log_std`` f32[A]."""
+    return jnp.sum(log_std + 0.5 * (LOG_2PI + 1.0))
+
+
+def policy_log_prob(policy: dict, obs: jax.Array, action: jax.Array) -> jax.Array:
+    """log π(action | obs) f32[...] for batched ``obs`` f32[..., obs_size] and ``action`` f32[..., A]."""
+    mean, log_std = policy_dist(policy, obs)
+    return gaussian_log_prob(mean, log_std, action)
+
+
+def sample_action(policy: dict, obs: jax.Array, rng: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """An action f32[..., A] drawn from π(· | obs) and its log-probability f32[...]."""
+    mean, log_std = policy_dist(policy, obs)
+    action = mean + jnp.exp(log_std) * jax.random.normal(rng, mean.shape, mean.dtype)
+    return action, gaussian_log_prob(mean, log_std, action)
+
+
+def value_apply(value: list, obs: jax.Array) -> jax.Array:
+    """V(obs) f32[...] for ``obs`` f32[..., obs_size]."""
+    return mlp_apply(value, obs)[..., 0]

@@ -1,0 +1,279 @@
+"""The RL step: PPO on one task until the family's success threshold or the iteration budget.
+
+One *iteration* (the paper's "episode" on its plots) collects ``num_trajectories`` episodes of T_max steps
+with the current policy, measures the success rate, and, unless the threshold is reached, makes
+``num_updates`` Adam steps on the clipped-surrogate PPO loss, each on a minibatch of ``minibatch_size``
+samples. The iterations run in a ``lax.while_loop``; per-iteration metrics come back as fixed-size arrays of
+length ``budget`` with a validity mask, so the whole step is one compiled program.
+
+Time limits are truncations: the value of the observation reached at T_max bootstraps the return, while a
+termination (Ant Direction falling) does not.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, Callable, NamedTuple, Optional
+
+import jax
+import jax.numpy as jnp
+import optax
+
+from jcomps import acting, networks
+from jcomps.envs.base import Family
+
+
+@dataclasses.dataclass(frozen=True)
+class PPOConfig:
+    """PPO hyperparameters (paper defaults where the paper gives them)."""
+
+    num_trajectories: int = 20
+    """Episodes of T_max steps collected per iteration (paper: 20)."""
+    num_updates: int = 16
+    """Gradient steps per iteration (paper: 16)."""
+    minibatch_size: int = 256
+    """Samples per gradient step (paper: 256)."""
+    learning_rate: float = 1e-3
+    """Adam learning rate (paper grid: 0.01, 5e-3, 1e-3, 1e-4)."""
+    init_std: float = 0.5
+    """Initial policy standard deviation (paper grid: 0.3, 0.5, 0.7)."""
+    hidden_sizes: tuple[int, ...] = (128, 64)
+    """Hidden layer widths of the policy and value MLPs (paper: [128, 64])."""
+    clip_epsilon: float = 0.2
+    """PPO ratio clipping range."""
+    discount: float = 0.99
+    """Discount factor γ."""
+    gae_lambda: float = 0.95
+    """GAE λ."""
+    value_coef: float = 0.5
+    """Weight of the value loss."""
+    entropy_coef: float = 0.0
+    """Weight of the entropy bonus."""
+    max_grad_norm: float = 0.5
+    """Global gradient-norm clip."""
+    normalize_advantages: bool = True
+    """Standardise advantages over each minibatch's valid samples."""
+    budget: Optional[int] = None
+    """Iterations per task N; None takes the family's paper value (500 Cheetah, 1000 Ant, 100 Point Goal)."""
+
+    def __post_init__(self):
+        _check(self.num_trajectories >= 1, "num_trajectories", self.num_trajectories, "an integer >= 1")
+        _check(self.num_updates >= 0, "num_updates", self.num_updates, "an integer >= 0")
+        _check(self.minibatch_size >= 1, "minibatch_size", self.minibatch_size, "an integer >= 1")
+        _check(self.learning_rate > 0, "learning_rate", self.learning_rate, "a number > 0")
+        _check(self.init_std > 0, "init_std", self.init_std, "a number > 0")
+        _check(len(self.hidden_sizes) >= 1 and all(h >= 1 for h in self.hidden_sizes), "hidden_sizes",
+               self.hidden_sizes, "one or more positive layer widths")
+        _check(self.clip_epsilon > 0, "clip_epsilon", self.clip_epsilon, "a number > 0")
+        _check(0 < self.discount <= 1, "discount", self.discount, "a number in (0, 1]")
+        _check(0 <= self.gae_lambda <= 1, "gae_lambda", self.gae_lambda, "a number in [0, 1]")
+        _check(self.value_coef >= 0, "value_coef", self.value_coef, "a number >= 0")
+        _check(self.entropy_coef >= 0, "entropy_coef", self.entropy_coef, "a number >= 0")
+        _check(self.max_grad_norm > 0, "max_grad_norm", self.max_grad_norm, "a number > 0")
+        _check(self.budget is None or self.budget >= 1, "budget", self.budget, "None or an integer >= 1")
+
+    def budget_for(self, family: Family) -> int:
+        """Iterations per task for ``family``."""
+        return family.default_budget if self.budget is None else self.budget
+
+
+def _check(ok: bool, field: str, value, allowed: str):
+    if not ok or isinstance(value, float) and math.isnan(value):
+        raise ValueError(f"invalid config value {field}={value!r}; allowed: {allowed}")
+
+
+class IterationMetrics(NamedTuple):
+    """Per-iteration metrics; inside ``rl_step`` each field is f32[budget] (bool for ``valid``).
+
+    Attributes:
+      mean_return: undiscounted return per episode, averaged over the iteration's episodes.
+      success_rate: the family's success rate of the iteration.
+      policy_loss, value_loss, entropy, approx_kl: means over the iteration's gradient steps (0 when the
+        iteration reached the threshold and made no update).
+      nonfinite: 1 where the iteration produced a NaN or infinity (rollout, loss or gradient); such updates
+        are skipped, never applied.
+      valid: True for iterations that ran (the first ``iterations`` entries).
+    """
+
+    mean_return: jax.Array
+    success_rate: jax.Array
+    policy_loss: jax.Array
+    value_loss: jax.Array
+    entropy: jax.Array
+    approx_kl: jax.Array
+    nonfinite: jax.Array
+    valid: jax.Array
+
+
+class RLStepResult(NamedTuple):
+    """What the RL step returns.
+
+    Attributes:
+      params: ActorCriticParams after the last update.
+      opt_state: the Adam state after the last update.
+      metrics: IterationMetrics with fields f32[budget].
+      iterations: i32[], iterations-to-success: the iteration (1-based) at which the success rate first
+        reached the threshold, or ``budget`` if it never did.
+      solved: bool[], whether the threshold was reached.
+      aux: whatever the ``observe`` hook accumulated (None without a hook).
+    """
+
+    params: networks.ActorCriticParams
+    opt_state: Any
+    metrics: IterationMetrics
+    iterations: jax.Array
+    solved: jax.Array
+    aux: Any
+
+
+def make_optimizer(config: PPOConfig) -> optax.GradientTransformation:
+    """Adam with global-norm clipping."""
+    return optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.learning_rate))
+
+
+def init_params(config: PPOConfig, family: Family, rng: jax.Array) -> networks.ActorCriticParams:
+    """Fresh actor-critic parameters for ``family``."""
+    return networks.init_actor_critic(rng, family.obs_size, family.action_size, config.hidden_sizes,
+                                      config.init_std)
+
+
+def gae(rewards, values, bootstrap_value, dones, discount: float, lambda_: float):
+    """Generalised advantage estimation over time-major ``[T, B]`` arrays.
+
+    ``values`` f32[T, B] are V(obs_t); ``bootstrap_value`` f32[B] is V(obs_T), the value of the state reached
+    at the time limit (a truncation); ``dones`` f32[T, B] are 1 where a transition terminated, which cuts both
+    the bootstrap and the trace. Returns (advantages f32[T, B], value targets f32[T, B]).
+    """
+    next_values = jnp.concatenate([values[1:], bootstrap_value[None]], axis=0)
+    not_done = 1.0 - dones
+    deltas = rewards + discount * not_done * next_values - values
+
+    def body(acc, xs):
+        delta, nd = xs
+        acc = delta + discount * lambda_ * nd * acc
+        return acc, acc
+
+    _, advantages = jax.lax.scan(body, jnp.zeros_like(bootstrap_value), (deltas, not_done), reverse=True)
+    return advantages, advantages + values
+
+
+def _masked_mean(x, mask):
+    return jnp.sum(x * mask) / jnp.maximum(jnp.sum(mask), 1.0)
+
+
+def ppo_loss(params: networks.ActorCriticParams, batch: dict, config: PPOConfig):
+    """Clipped-surrogate PPO loss on a flat minibatch; returns (loss, (policy_loss, value_loss, entropy, kl))."""
+    mask = batch["valid"]
+    adv = batch["advantage"]
+    if config.normalize_advantages:
+        mean = _masked_mean(adv, mask)
+        std = jnp.sqrt(_masked_mean(jnp.square(adv - mean), mask))
+        adv = (adv - mean) / (std + 1e-8)
+    log_prob = networks.policy_log_prob(params.policy, batch["obs"], batch["action"])
+    log_ratio = log_prob - batch["log_prob"]
+    ratio = jnp.exp(log_ratio)
+    surrogate = jnp.minimum(ratio * adv, jnp.clip(ratio, 1 - config.clip_epsilon, 1 + config.clip_epsilon) * adv)
+    policy_loss = -_masked_mean(surrogate, mask)
+    value_loss = 0.5 * _masked_mean(jnp.square(networks.value_apply(params.value, batch["obs"]) - batch["target"]),
+                                    mask)
+    entropy = networks.gaussian_entropy(params.policy["log_std"])
+    approx_kl = _masked_mean(ratio - 1.0 - log_ratio, mask)
+    loss = policy_loss + config.value_coef * value_loss - config.entropy_coef * entropy
+    return loss, (policy_loss, value_loss, entropy, approx_kl)
+
+
+def _all_finite(tree) -> jax.Array:
+    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree)]))
+
+
+def ppo_update(config: PPOConfig, optimizer, params, opt_state, traj: acting.Trajectory, rng: jax.Array):
+    """``num_updates`` minibatch Adam steps on one iteration's batch.
+
+    Minibatches walk through fresh permutations of the T·B samples, so each sample is used about equally.
+    A step whose loss or gradient is not finite is skipped. Returns (params, opt_state, mean loss terms f32[4],
+    nonfinite f32[]).
+    """
+    values = networks.value_apply(params.value, traj.obs)
+    bootstrap = networks.value_apply(params.value, traj.last_obs)
+    advantage, target = gae(traj.reward, values, bootstrap, traj.done, config.discount, config.gae_lambda)
+    flat = {
+        "obs": traj.obs, "action": traj.action, "log_prob": traj.log_prob, "valid": traj.valid,
+        "advantage": advantage, "target": target,
+    }
+    flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), flat)
+    n = flat["valid"].shape[0]
+    total = config.num_updates * config.minibatch_size
+    n_perm = max(1, -(-total // n))
+    perms = jax.vmap(lambda k: jax.random.permutation(k, n))(jax.random.split(rng, n_perm))
+    indices = perms.reshape(-1)[:total].reshape(config.num_updates, config.minibatch_size)
+    grad_fn = jax.value_and_grad(ppo_loss, has_aux=True)
+
+    def step(carry, idx):
+        params, opt_state, bad = carry
+        batch = jax.tree.map(lambda x: x[idx], flat)
+        (loss, terms), grads = grad_fn(params, batch, config)
+        finite = _all_finite((loss, grads))
+        updates, new_opt_state = optimizer.update(grads, opt_state, params)
+        new_params = optax.apply_updates(params, updates)
+        params, opt_state = jax.tree.map(lambda a, b: jnp.where(finite, a, b), (new_params, new_opt_state),
+                                         (params, opt_state))
+        return (params, opt_state, bad | ~finite), jnp.stack(terms)
+
+    (params, opt_state, bad), terms = jax.lax.scan(step, (params, opt_state, jnp.array(False)), indices)
+    return params, opt_state, jnp.mean(terms, axis=0), bad.astype(jnp.float32)
+
+
+ObserveFn = Callable[[Any, acting.Trajectory, jax.Array], Any]
+
+
+def rl_step(config: PPOConfig, family: Family, params: networks.ActorCriticParams, opt_state, task,
+            rng: jax.Array, observe: Optional[ObserveFn] = None, aux: Any = None) -> RLStepResult:
+    """PPO on ``task`` until the success rate reaches ``family.success_threshold`` or the budget is spent.
+
+    ``observe(aux, trajectory, iteration) -> aux``, if given, sees every iteration's batch (the experience
+    stores of CoMPS are built this way) and threads ``aux`` through the loop. Jittable; ``config`` and
+    ``family`` are static.
+    """
+    budget = config.budget_for(family)
+    optimizer = make_optimizer(config)
+    zeros = jnp.zeros((budget,), jnp.float32)
+    metrics0 = IterationMetrics(zeros, zeros, zeros, zeros, zeros, zeros, zeros, jnp.zeros((budget,), bool))
+
+    class Carry(NamedTuple):
+        params: Any
+        opt_state: Any
+        rng: jax.Array
+        it: jax.Array
+        solved: jax.Array
+        metrics: IterationMetrics
+        aux: Any
+
+    def cond(c: Carry):
+        return (~c.solved) & (c.it < budget)
+
+    def body(c: Carry):
+        rng, k_roll, k_upd = jax.random.split(c.rng, 3)
+        traj = acting.rollout(family, c.params.policy, task, k_roll, config.num_trajectories)
+        success_rate = family.success_rate(traj.success)
+        mean_return = jnp.mean(jnp.sum(traj.reward, axis=0))
+        solved = success_rate >= family.success_threshold
+        rollout_finite = _all_finite((traj.obs, traj.reward))
+        aux = c.aux if observe is None else observe(c.aux, traj, c.it)
+
+        def update(_):
+            return ppo_update(config, optimizer, c.params, c.opt_state, traj, k_upd)
+
+        def skip(_):
+            return c.params, c.opt_state, jnp.zeros((4,), jnp.float32), jnp.float32(0.0)
+
+        params, opt_state, terms, bad = jax.lax.cond(solved | ~rollout_finite, skip, update, None)
+        bad = jnp.maximum(bad, 1.0 - rollout_finite.astype(jnp.float32))
+        row = IterationMetrics(mean_return, success_rate, terms[0], terms[1], terms[2], terms[3], bad,
+                               jnp.array(True))
+        metrics = jax.tree.map(lambda m, v: m.at[c.it].set(v), c.metrics, row)
+        return Carry(params, opt_state, rng, c.it + 1, solved, metrics, aux)
+
+    init = Carry(params, opt_state, rng, jnp.int32(0), jnp.array(False), metrics0, aux)
+    out = jax.lax.while_loop(cond, body, init)
+    return RLStepResult(out.params, out.opt_state, out.metrics, out.it, out.solved, out.aux)

@@ -1,0 +1,71 @@
+"""Tests of the method interface and the continual loop (lax.scan over tasks, vmap over seeds)."""
+
+import chex
+import jax
+import numpy as np
+import pytest
+
+from jcomps import continual, envs, methods, ppo
+from jcomps.methods import ppo_tl
+
+SMALL = ppo_tl.PPOTLConfig(ppo=ppo.PPOConfig(num_trajectories=4, num_updates=2, minibatch_size=32,
+                                             hidden_sizes=(16,), budget=3))
+
+
+@pytest.fixture(scope="module")
+def family():
+    return envs.make("point_goal")
+
+
+def test_learn_task_traced_once_however_long_the_sequence(family):
+    method = methods.make("ppo_tl", family, SMALL)
+    counted = chex.assert_max_traces(method.learn_task, n=1)
+    method = method._replace(learn_task=counted)
+    for num_tasks in (1, 3, 5):
+        _, metrics = continual.run_sequence(method, envs.sequence(family, num_tasks=num_tasks),
+                                            jax.random.PRNGKey(0))
+        chex.assert_shape(metrics.iterations, (num_tasks,))
+        chex.assert_shape(metrics.per_iteration.mean_return, (num_tasks, 3))
+    chex.clear_trace_counter()
+
+
+def test_seeds_vmap_matches_single_runs(family):
+    method = methods.make("ppo_tl", family, SMALL)
+    tasks = envs.sequence(family, num_tasks=2)
+    rngs = jax.random.split(jax.random.PRNGKey(3), 2)
+    states, batched = continual.run_seeds(method, tasks, rngs)
+    for s in range(2):
+        _, single = jax.jit(lambda r: continual.run_sequence(method, tasks, r))(rngs[s])
+        chex.assert_trees_all_close(jax.tree.map(lambda x: x[s], batched), single, rtol=1e-4, atol=1e-4)
+    np.testing.assert_array_equal(np.asarray(states.task_index), [2, 2])
+
+
+def test_parameters_carry_over_between_tasks(family):
+    method = methods.make("ppo_tl", family, SMALL)
+    state = method.init(jax.random.PRNGKey(0))
+    task = envs.task_at(family, 0)
+    after, _ = jax.jit(method.learn_task)(state, task)
+    assert int(after.task_index) == 1
+    # learn_task starts from the carried parameters: learning the next task from `after` differs from learning it
+    # from the initial parameters with the same rng.
+    nxt = envs.task_at(family, 1)
+    a, _ = jax.jit(method.learn_task)(after, nxt)
+    b, _ = jax.jit(method.learn_task)(after._replace(params=state.params), nxt)
+    assert not np.allclose(np.asarray(a.params.value[0]["w"]), np.asarray(b.params.value[0]["w"]))
+
+
+def test_per_seed_task_orders(family):
+    method = methods.make("ppo_tl", family, SMALL)
+    values = np.stack([envs.sequence_values(family, "stationary", s, 2) for s in (0, 1)])
+    assert not np.array_equal(values[0], values[1])
+    tasks = jax.tree.map(lambda x: x.reshape((2, 2) + x.shape[1:]), family.tasks(values.reshape(-1)))
+    _, metrics = continual.run_seeds(method, tasks, jax.random.split(jax.random.PRNGKey(0), 2), tasks_per_seed=True)
+    chex.assert_shape(metrics.iterations, (2, 2))
+
+
+def test_unknown_method_and_wrong_config():
+    family = envs.make("point_goal")
+    with pytest.raises(ValueError, match="unknown method 'nope'; allowed: ppo_tl"):
+        methods.make("nope", family)
+    with pytest.raises(TypeError, match="PPOTLConfig"):
+        methods.make("ppo_tl", family, ppo.PPOConfig())

@@ -1,0 +1,141 @@
+"""Tests of the RL step: GAE laws, the stopping rule, NaN handling, learning on Point Goal, config checks."""
+
+import dataclasses
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jcomps import envs, networks, ppo
+
+SMALL = ppo.PPOConfig(num_trajectories=4, num_updates=4, minibatch_size=64, hidden_sizes=(16,), budget=6)
+
+
+def _discounted(rewards, bootstrap, discount):
+    out = np.zeros_like(rewards)
+    acc = bootstrap
+    for t in reversed(range(len(rewards))):
+        acc = rewards[t] + discount * acc
+        out[t] = acc
+    return out
+
+
+def test_gae_lambda_one_gives_bootstrapped_discounted_return():
+    rng = np.random.default_rng(0)
+    rewards = rng.normal(size=(7, 3)).astype(np.float32)
+    values = rng.normal(size=(7, 3)).astype(np.float32)
+    boot = rng.normal(size=(3,)).astype(np.float32)
+    _, targets = ppo.gae(rewards, values, boot, np.zeros_like(rewards), 0.9, 1.0)
+    chex.assert_trees_all_close(np.asarray(targets), _discounted(rewards, boot, 0.9), rtol=1e-5, atol=1e-5)
+
+
+def test_gae_lambda_zero_is_one_step_td():
+    rng = np.random.default_rng(1)
+    rewards, values = rng.normal(size=(2, 5, 2)).astype(np.float32)
+    boot = rng.normal(size=(2,)).astype(np.float32)
+    adv, _ = ppo.gae(rewards, values, boot, np.zeros_like(rewards), 0.9, 0.0)
+    next_v = np.concatenate([values[1:], boot[None]])
+    chex.assert_trees_all_close(np.asarray(adv), rewards + 0.9 * next_v - values, rtol=1e-5, atol=1e-5)
+
+
+def test_gae_termination_cuts_bootstrap_but_truncation_does_not():
+    rewards = np.ones((4, 2), np.float32)
+    values = np.zeros((4, 2), np.float32)
+    boot = np.full((2,), 10.0, np.float32)
+    dones = np.zeros((4, 2), np.float32)
+    dones[3, 1] = 1.0  # env 1 terminates at its last step; env 0 is truncated at T
+    _, targets = ppo.gae(rewards, values, boot, dones, 0.5, 1.0)
+    assert np.isclose(targets[3, 0], 1.0 + 0.5 * 10.0)
+    assert np.isclose(targets[3, 1], 1.0)
+    # A termination in the middle separates the episode before it from what follows.
+    dones = np.zeros((4, 2), np.float32)
+    dones[1, :] = 1.0
+    _, targets = ppo.gae(rewards, values, boot, dones, 0.5, 1.0)
+    chex.assert_trees_all_close(np.asarray(targets[:2, 0]), np.array([1.5, 1.0]), atol=1e-6)
+
+
+def test_log_prob_matches_closed_form():
+    params = networks.init_actor_critic(jax.random.PRNGKey(0), 3, 2, (8,), 0.5)
+    obs = jnp.ones((5, 3))
+    action, logp = networks.sample_action(params.policy, obs, jax.random.PRNGKey(1))
+    mean, log_std = networks.policy_dist(params.policy, obs)
+    std = np.exp(np.asarray(log_std))
+    manual = np.sum(-0.5 * ((np.asarray(action) - np.asarray(mean)) / std) ** 2 - np.log(std * np.sqrt(2 * np.pi)),
+                    axis=-1)
+    chex.assert_trees_all_close(np.asarray(logp), manual, rtol=1e-5)
+    assert not params.policy["log_std"].weak_type
+
+
+def _run(family, config, seed=0):
+    optimizer = ppo.make_optimizer(config)
+    params = ppo.init_params(config, family, jax.random.PRNGKey(seed))
+    task = envs.task_at(family, 0)
+    return jax.jit(lambda p, o, r: ppo.rl_step(config, family, p, o, task, r))(
+        params, optimizer.init(params), jax.random.PRNGKey(seed + 1)), params
+
+
+@pytest.fixture(scope="module")
+def point():
+    return envs.make("point_goal")
+
+
+def test_stops_at_threshold(point):
+    easy = dataclasses.replace(point, success_threshold=0.0)
+    out, params = _run(easy, SMALL)
+    assert int(out.iterations) == 1 and bool(out.solved)
+    np.testing.assert_array_equal(np.asarray(out.metrics.valid), [True] + [False] * 5)
+    chex.assert_trees_all_equal(out.params, params)  # no update once the threshold is reached
+
+
+def test_budget_spent_when_threshold_unreachable(point):
+    hard = dataclasses.replace(point, success_threshold=2.0)
+    out, params = _run(hard, SMALL)
+    assert int(out.iterations) == SMALL.budget and not bool(out.solved)
+    assert np.all(np.asarray(out.metrics.valid))
+    assert np.all(np.asarray(out.metrics.nonfinite) == 0)
+    assert not np.allclose(np.asarray(out.params.policy["log_std"]), np.asarray(params.policy["log_std"])) or \
+        not np.allclose(np.asarray(out.params.value[0]["w"]), np.asarray(params.value[0]["w"]))
+
+
+def test_nan_rewards_are_reported_and_not_trained_on(point):
+    def nan_step(state, action, task):
+        nxt = point.step_fn(state, action, task)
+        return nxt._replace(reward=jnp.float32(jnp.nan))
+
+    broken = dataclasses.replace(point, success_threshold=2.0, step_fn=nan_step)
+    out, params = _run(broken, dataclasses.replace(SMALL, budget=2))
+    assert np.all(np.asarray(out.metrics.nonfinite) == 1)
+    chex.assert_trees_all_equal(out.params, params)
+
+
+def test_ppo_raises_return_on_point_goal(point):
+    never = dataclasses.replace(point, success_threshold=2.0)
+    config = ppo.PPOConfig(budget=15)
+    out, _ = _run(never, config)
+    ret = np.asarray(out.metrics.mean_return)
+    assert ret[-3:].mean() > ret[:3].mean() + 20.0, ret
+
+
+@pytest.mark.parametrize("field,value", [
+    ("num_trajectories", 0), ("learning_rate", -1.0), ("learning_rate", float("nan")), ("discount", 1.5),
+    ("budget", 0), ("hidden_sizes", ()), ("clip_epsilon", 0.0),
+])
+def test_bad_config_names_the_field(field, value):
+    with pytest.raises(ValueError, match=field):
+        ppo.PPOConfig(**{field: value})
+
+
+def test_rollout_shapes_and_truncation_bootstrap_obs(point):
+    policy = ppo.init_params(SMALL, point, jax.random.PRNGKey(0)).policy
+    from jcomps import acting
+
+    traj = jax.jit(lambda r: acting.rollout(point, policy, envs.task_at(point, 0), r, 3))(jax.random.PRNGKey(0))
+    T = point.max_steps
+    chex.assert_shape([traj.obs, traj.action], [(T, 3, 2), (T, 3, 2)])
+    chex.assert_shape([traj.reward, traj.log_prob, traj.done, traj.valid, traj.success], (T, 3))
+    chex.assert_shape(traj.last_obs, (3, 2))
+    # The observation after the last step is the last obs plus the last (clipped) move.
+    moved = traj.obs[-1] + 0.1 * jnp.clip(traj.action[-1], -1, 1)
+    chex.assert_trees_all_close(traj.last_obs, moved, atol=1e-6)
