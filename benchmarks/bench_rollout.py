@@ -2,7 +2,8 @@
 
 Both run T_max steps of B fresh episodes in one jitted ``lax.scan`` on the same family and batch; "raw"
 feeds precomputed actions to ``family.step``, "rollout" is ``jcomps.acting.rollout`` with a [128, 64]
-Gaussian policy. One line per case, ``key=value`` pairs ending in ``ratio=<rollout/raw>``.
+Gaussian policy. One line per case, ``key=value`` pairs ending in ``ratio=<rollout/raw>`` (throughput ratio,
+the median over alternating timed pairs; ``best_ratio`` compares the best times instead).
 
     python benchmarks/bench_rollout.py [--families cheetah_vel ant_goal] [--batches 20 256] [--repeats 5]
 """
@@ -13,21 +14,28 @@ import argparse
 import time
 
 import jax
-import jax.numpy as jnp
+import numpy as np
 
 from jcomps import acting, envs, ppo
 
 
-def _time(fn, *args, repeats):
+def _seconds(fn, args):
     start = time.perf_counter()
     jax.block_until_ready(fn(*args))
-    compile_s = time.perf_counter() - start
-    best = float("inf")
+    return time.perf_counter() - start
+
+
+def _time_pair(a, a_args, b, b_args, repeats):
+    """Compile times, best-of-``repeats`` run times of ``a`` and ``b``, and the median of the per-repeat time
+    ratios a/b. The two are timed alternately, so each ratio compares runs made under the same machine load
+    (on a shared 2-core machine throughput drifts by 30% within a minute)."""
+    compile_a, compile_b = _seconds(a, a_args), _seconds(b, b_args)
+    times_a, times_b = [], []
     for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        best = min(best, time.perf_counter() - start)
-    return compile_s, best
+        times_a.append(_seconds(a, a_args))
+        times_b.append(_seconds(b, b_args))
+    ratio = float(np.median(np.asarray(times_a) / np.asarray(times_b)))
+    return compile_a, min(times_a), compile_b, min(times_b), ratio
 
 
 def bench(name: str, batch: int, repeats: int) -> str:
@@ -48,12 +56,11 @@ def bench(name: str, batch: int, repeats: int) -> str:
         return acting.rollout(family, policy, task, rng, batch).reward
 
     rng = jax.random.PRNGKey(2)
-    raw_compile, raw_s = _time(raw, rng, actions, repeats=repeats)
-    roll_compile, roll_s = _time(roll, rng, policy, repeats=repeats)
+    raw_compile, raw_s, roll_compile, roll_s, ratio = _time_pair(raw, (rng, actions), roll, (rng, policy), repeats)
     steps = family.max_steps * batch
     return (f"family={name} batch={batch} steps={steps} raw_steps_per_s={steps / raw_s:.0f} "
             f"rollout_steps_per_s={steps / roll_s:.0f} raw_compile_s={raw_compile:.1f} "
-            f"rollout_compile_s={roll_compile:.1f} ratio={raw_s / roll_s:.3f}")
+            f"rollout_compile_s={roll_compile:.1f} best_ratio={raw_s / roll_s:.3f} ratio={ratio:.3f}")
 
 
 def _raw_body(step, state, action, task):
@@ -65,7 +72,7 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--families", nargs="+", default=["cheetah_vel", "ant_goal"], choices=envs.FAMILIES)
     parser.add_argument("--batches", nargs="+", type=int, default=[20, 256])
-    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--repeats", type=int, default=15)
     args = parser.parse_args()
     print(f"backend={jax.default_backend()} devices={jax.device_count()}", flush=True)
     for name in args.families:

@@ -44,12 +44,13 @@ def rollout(family: Family, policy: dict, task, rng: jax.Array, num_envs: int) -
     state = jax.vmap(family.reset, (0, None))(jax.random.split(reset_rng, num_envs), task)
     step = jax.vmap(family.step, (0, 0, None))
 
-    def body(state, key):
-        action, log_prob = networks.sample_action(policy, state.obs, key)
+    def body(state, noise):
+        action, log_prob = networks.action_from_noise(policy, state.obs, noise)
         nxt = step(state, action, task)
         valid = 1.0 - state.done
         done = nxt.done * valid
         return nxt, Trajectory(state.obs, action, log_prob, nxt.reward, done, valid, nxt.success, None)
 
-    state, traj = jax.lax.scan(body, state, jax.random.split(step_rng, family.max_steps))
+    noise = jax.random.normal(step_rng, (family.max_steps, num_envs, family.action_size), jnp.float32)
+    state, traj = jax.lax.scan(body, state, noise)
     return traj._replace(last_obs=state.obs)

@@ -56,8 +56,7 @@ def _parser_for(tp):
             raise argparse.ArgumentTypeError(f"expected true or false, got {s!r}")
         return parse_bool
     if origin is tuple:
-        elem = args[0]
-        return lambda s: tuple(elem(x) for x in s.replace(",", " ").split())
+        return args[0]  # one element per command-line word (nargs="+"), made a tuple by build_config
     return tp
 
 
@@ -72,7 +71,8 @@ def add_config_args(parser: argparse.ArgumentParser, classes) -> None:
                 continue
             seen.add(flag)
             shown = " ".join(map(str, default)) if isinstance(default, tuple) else default
-            group.add_argument(flag, dest=f"cfg_{name}", type=_parser_for(tp), default=None,
+            nargs = "+" if typing.get_origin(tp) is tuple else None
+            group.add_argument(flag, dest=f"cfg_{name}", type=_parser_for(tp), nargs=nargs, default=None,
                                metavar=name.upper(), help=f"{doc} (default: {shown})")
 
 
@@ -86,5 +86,5 @@ def build_config(cls, args: argparse.Namespace):
         else:
             value = getattr(args, f"cfg_{f.name}", None)
             if value is not None:
-                kwargs[f.name] = value
+                kwargs[f.name] = tuple(value) if isinstance(value, list) else value
     return cls(**kwargs)

@@ -76,9 +76,20 @@ def policy_log_prob(policy: dict, obs: jax.Array, action: jax.Array) -> jax.Arra
 
 def sample_action(policy: dict, obs: jax.Array, rng: jax.Array) -> tuple[jax.Array, jax.Array]:
     """An action f32[..., A] drawn from π(· | obs) and its log-probability f32[...]."""
+    mean, _ = policy_dist(policy, obs)
+    return action_from_noise(policy, obs, jax.random.normal(rng, mean.shape, mean.dtype))
+
+
+def action_from_noise(policy: dict, obs: jax.Array, noise: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """The action mean + std·noise for standard-normal ``noise`` f32[..., A], and its log-probability f32[...].
+
+    Rollouts draw all their noise in one call before the time loop, which keeps random-number generation out of
+    the per-step work; the log-probability comes from the noise directly.
+    """
     mean, log_std = policy_dist(policy, obs)
-    action = mean + jnp.exp(log_std) * jax.random.normal(rng, mean.shape, mean.dtype)
-    return action, gaussian_log_prob(mean, log_std, action)
+    action = mean + jnp.exp(log_std) * noise
+    log_prob = jnp.sum(-0.5 * jnp.square(noise) - log_std - 0.5 * LOG_2PI, axis=-1)
+    return action, log_prob
 
 
 def value_apply(value: list, obs: jax.Array) -> jax.Array:

@@ -140,22 +140,19 @@ class Family:
 
 def validate_values(family: Family, values) -> np.ndarray:
     """Checks a list of task parameter values and returns it as a float32 array, or raises ValueError."""
-    try:
-        arr = np.asarray(values, dtype=np.float64)
-    except (TypeError, ValueError) as err:
-        raise ValueError(
-            f"{family.name}: task values must be a 1-D list of numbers ({family.value_name}), got {values!r}"
-        ) from err
+    what = f"a non-empty 1-D list of numbers ({family.value_name})"
+    arr = np.asarray(values, dtype=object) if not isinstance(values, np.ndarray) else values
     if arr.ndim != 1 or arr.size == 0:
-        raise ValueError(
-            f"{family.name}: task values must be a non-empty 1-D list of numbers ({family.value_name}), "
-            f"got shape {arr.shape}"
-        )
+        raise ValueError(f"{family.name}: task values must be {what}, got shape {np.shape(arr)}")
+    for v in arr:
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating)):
+            raise ValueError(f"{family.name}: task values must be {what}, got {v!r}")
+    arr = arr.astype(np.float64)
     low, high = family.value_range
     bad = ~np.isfinite(arr) | (arr < low) | (arr > high)
     if bad.any():
         raise ValueError(
-            f"{family.name}: task value {arr[bad][0]!r} is out of range; {family.value_name} must be a finite "
-            f"number in [{low}, {high}]"
+            f"{family.name}: task value {float(arr[bad][0])} is out of range; {family.value_name} must be a "
+            f"finite number in [{low}, {high}]"
         )
     return arr.astype(np.float32)
