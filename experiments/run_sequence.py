@@ -67,10 +67,10 @@ def main(argv=None):
         budget = config.ppo.budget_for(family)
         start = time.time()
 
-        def progress(task_index, metrics, name=name, start=start):
-            its, solved = np.asarray(metrics.iterations), np.asarray(metrics.solved)
-            print(f"[{name}] task {int(np.max(task_index)) + 1}/{args.num_tasks}: iterations-to-success "
-                  f"{its.tolist()} solved {solved.tolist()} elapsed {time.time() - start:.0f}s", flush=True)
+        def progress(seed_index, task_index, metrics, name=name, start=start):
+            print(f"[{name}] seed {seeds[int(seed_index)]} task {int(task_index) + 1}/{args.num_tasks}: "
+                  f"iterations-to-success {int(metrics.iterations)} solved {bool(metrics.solved)} "
+                  f"elapsed {time.time() - start:.0f}s", flush=True)
 
         print(f"[{name}] {args.family} {args.sequence}, {args.num_tasks} tasks, {len(seeds)} seeds, "
               f"budget {budget}; compiling...", flush=True)

@@ -122,36 +122,10 @@ def _ant_goal_obs(ps):
     return jnp.concatenate([ps.q[:2], ps.q[2:], ps.qd])
 
 
-def _make_cheetah() -> base.Family:
-    env = _brax_env("halfcheetah")
+def _mjx_family(model: str, obs_fn, outcome_fn, **facts) -> base.Family:
+    """A family on brax's ``model``: ``outcome_fn(q_before, q_after, action, task, dt) -> (reward, success, done)``."""
+    env = _brax_env(model)
     dt = env.dt
-
-    def reset(rng, task):
-        del task
-        ps = _reset_sim(env, rng)
-        return base.make_env_state(ps, _cheetah_obs(ps))
-
-    def step(state, action, task):
-        ps0 = state.sim
-        ps = env.pipeline_step(ps0, action)
-        velocity = (ps.q[0] - ps0.q[0]) / dt
-        reward, success = cheetah_reward_and_success(velocity, action, task)
-        return base.make_env_state(ps, _cheetah_obs(ps), reward, 0.0, success, state.t)
-
-    return base.Family(
-        name="cheetah_vel", obs_size=17, action_size=6, max_steps=MAX_STEPS, success_threshold=0.45,
-        default_budget=500, task_values=tuple(sequences.CHEETAH_VELOCITIES),
-        held_out_values=sequences.HELD_OUT_VELOCITIES, value_range=(-3.0, 3.0),
-        value_name="goal velocity in m/s", make_task=lambda v: CheetahVelTask(jnp.asarray(v, jnp.float32)),
-        reset_fn=reset, step_fn=step,
-    )
-
-
-def _make_ant(name: str) -> base.Family:
-    env = _brax_env("ant")
-    dt = env.dt
-    goal = name == "ant_goal"
-    obs_fn = _ant_goal_obs if goal else _ant_obs
 
     def reset(rng, task):
         del task
@@ -159,27 +133,49 @@ def _make_ant(name: str) -> base.Family:
         return base.make_env_state(ps, obs_fn(ps))
 
     def step(state, action, task):
-        ps0 = state.sim
-        ps = env.pipeline_step(ps0, action)
-        if goal:
-            reward, success = ant_goal_reward_and_success(ps.q[:2], action, task)
-            done = 0.0
-        else:
-            velocity = (ps.q[:2] - ps0.q[:2]) / dt
-            reward, success, done = ant_dir_reward_and_success(velocity, ps.q[2], action, task)
+        ps = env.pipeline_step(state.sim, action)
+        reward, success, done = outcome_fn(state.sim.q, ps.q, action, task, dt)
         return base.make_env_state(ps, obs_fn(ps), reward, done, success, state.t)
 
-    if goal:
-        make_task = lambda a: AntGoalTask(ANT_GOAL_RADIUS * _unit(a))  # noqa: E731
-    else:
-        make_task = lambda a: AntDirTask(_unit(a))  # noqa: E731
-    return base.Family(
-        name=name, obs_size=29 if goal else 27, action_size=8, max_steps=MAX_STEPS,
+    return base.Family(max_steps=MAX_STEPS, reset_fn=reset, step_fn=step, **facts)
+
+
+def _cheetah_outcome(q0, q, action, task, dt):
+    reward, success = cheetah_reward_and_success((q[0] - q0[0]) / dt, action, task)
+    return reward, success, 0.0
+
+
+def _ant_goal_outcome(q0, q, action, task, dt):
+    del q0, dt
+    reward, success = ant_goal_reward_and_success(q[:2], action, task)
+    return reward, success, 0.0
+
+
+def _ant_dir_outcome(q0, q, action, task, dt):
+    return ant_dir_reward_and_success((q[:2] - q0[:2]) / dt, q[2], action, task)
+
+
+def _make_cheetah() -> base.Family:
+    return _mjx_family(
+        "halfcheetah", _cheetah_obs, _cheetah_outcome,
+        name="cheetah_vel", obs_size=17, action_size=6, success_threshold=0.45,
+        default_budget=500, task_values=tuple(sequences.CHEETAH_VELOCITIES),
+        held_out_values=sequences.HELD_OUT_VELOCITIES, value_range=(-3.0, 3.0),
+        value_name="goal velocity in m/s", make_task=lambda v: CheetahVelTask(jnp.asarray(v, jnp.float32)),
+    )
+
+
+def _make_ant(name: str) -> base.Family:
+    goal = name == "ant_goal"
+    return _mjx_family(
+        "ant", _ant_goal_obs if goal else _ant_obs, _ant_goal_outcome if goal else _ant_dir_outcome,
+        name=name, obs_size=29 if goal else 27, action_size=8,
         success_threshold=0.3 if goal else 0.5, default_budget=1000,
         task_values=tuple(float(a) for a in sequences.ANT_ANGLES_DEG),
         held_out_values=sequences.HELD_OUT_ANGLES_DEG, value_range=(-360.0, 360.0),
         value_name="goal angle in degrees" if goal else "direction angle in degrees",
-        make_task=make_task, reset_fn=reset, step_fn=step, can_terminate=not goal,
+        make_task=(lambda a: AntGoalTask(ANT_GOAL_RADIUS * _unit(a))) if goal else (lambda a: AntDirTask(_unit(a))),
+        can_terminate=not goal,
     )
 
 
