@@ -1,0 +1,147 @@
+"""Experience stores of CoMPS as fixed-size pytrees (paper §4 and appendix "RL Training Details").
+
+For each task i of a sequence:
+
+- D*_i, the *skilled* store: the ``num_skilled`` (20) highest-return trajectories seen by the RL step on task i,
+  kept incrementally as iterations arrive (top-k merge), never by storing everything.
+- D_i, the *off-policy* store: ``num_offpolicy`` (100) trajectories sampled from the last
+  k = min(M, ⌈0.05·N⌉) iterations (M iterations used, N the budget), with the behaviour policy's
+  log-probabilities. While the task runs, a ring of the last ⌈0.05·N⌉ iterations holds the candidates.
+
+``SequenceStores`` holds both for every task slot of a sequence, with validity masks, so a meta step can cover
+tasks j ≤ i inside ``lax.scan`` without recompiling. Trajectories are time-major: ``[T, K, ...]`` per slot.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from jcomps.acting import Trajectory
+
+
+class SkilledStore(NamedTuple):
+    """The top-K trajectories by undiscounted return.
+
+    Attributes:
+      obs: f32[T, K, obs_size]; action: f32[T, K, A]; valid: f32[T, K] (0 after a termination).
+      returns: f32[K], −inf in empty rows.
+    """
+
+    obs: jax.Array
+    action: jax.Array
+    valid: jax.Array
+    returns: jax.Array
+
+
+class RecentStore(NamedTuple):
+    """A ring of the last ``capacity`` iterations' batches: ``traj`` fields have a leading [capacity] axis.
+
+    ``iterations`` (i32[]) counts the batches ever added.
+    """
+
+    traj: Trajectory
+    iterations: jax.Array
+
+
+class OffPolicyStore(NamedTuple):
+    """Sampled trajectories with behaviour log-probabilities: ``traj`` fields [T, N, ...], ``mask`` f32[N]."""
+
+    traj: Trajectory
+    mask: jax.Array
+
+
+class SequenceStores(NamedTuple):
+    """D* and D for every task slot of a sequence; leaves have a leading [num_slots] axis.
+
+    ``task_valid`` (bool[num_slots]) marks slots whose task has been learnt.
+    """
+
+    skilled: SkilledStore
+    offpolicy: OffPolicyStore
+    task_valid: jax.Array
+
+
+def recent_capacity(budget: int, fraction: float = 0.05) -> int:
+    """⌈fraction·N⌉ iterations, the most D_i is sampled from."""
+    return max(1, math.ceil(fraction * budget))
+
+
+def _empty_traj(T, B, obs_size, action_size, lead=()) -> Trajectory:
+    z = lambda *s: jnp.zeros(lead + s, jnp.float32)  # noqa: E731
+    return Trajectory(z(T, B, obs_size), z(T, B, action_size), z(T, B), z(T, B), z(T, B), z(T, B), z(T, B),
+                      z(B, obs_size))
+
+
+def skilled_init(T: int, num_skilled: int, obs_size: int, action_size: int) -> SkilledStore:
+    """An empty skilled store."""
+    return SkilledStore(jnp.zeros((T, num_skilled, obs_size), jnp.float32),
+                        jnp.zeros((T, num_skilled, action_size), jnp.float32),
+                        jnp.zeros((T, num_skilled), jnp.float32), jnp.full((num_skilled,), -jnp.inf, jnp.float32))
+
+
+def skilled_update(store: SkilledStore, traj: Trajectory) -> SkilledStore:
+    """Merges a batch ``traj`` ([T, B, ...]) into the store, keeping the K highest returns."""
+    k = store.returns.shape[0]
+    returns = jnp.concatenate([store.returns, jnp.sum(traj.reward, axis=0)])
+    top, idx = jax.lax.top_k(returns, k)
+    pick = lambda old, new: jnp.take(jnp.concatenate([old, new], axis=1), idx, axis=1)  # noqa: E731
+    return SkilledStore(pick(store.obs, traj.obs), pick(store.action, traj.action), pick(store.valid, traj.valid),
+                        top)
+
+
+def recent_init(capacity: int, T: int, B: int, obs_size: int, action_size: int) -> RecentStore:
+    """An empty ring of ``capacity`` iterations of B trajectories."""
+    return RecentStore(_empty_traj(T, B, obs_size, action_size, (capacity,)), jnp.int32(0))
+
+
+def recent_add(store: RecentStore, traj: Trajectory) -> RecentStore:
+    """Adds one iteration's batch, overwriting the oldest when full."""
+    capacity = store.traj.reward.shape[0]
+    slot = store.iterations % capacity
+    new = jax.tree.map(lambda buf, x: jax.lax.dynamic_update_index_in_dim(buf, x, slot, 0), store.traj, traj)
+    return RecentStore(new, store.iterations + 1)
+
+
+def sample_offpolicy(store: RecentStore, num: int, rng: jax.Array) -> OffPolicyStore:
+    """``num`` trajectories drawn without replacement from every iteration in the ring (the last
+    min(M, capacity) iterations); if fewer exist, the rest of the rows are masked out."""
+    capacity, _, B = store.traj.reward.shape
+    filled = jnp.minimum(store.iterations, capacity)
+    candidate_ok = (jnp.arange(capacity) < filled)[:, None] & jnp.ones((1, B), bool)
+    keys = jnp.where(candidate_ok.reshape(-1), jax.random.uniform(rng, (capacity * B,)), -1.0)
+    score, flat_idx = jax.lax.top_k(keys, num)
+    it, b = flat_idx // B, flat_idx % B
+    per_step = store.traj._replace(last_obs=None)
+    # x[it, :, b] puts the sampled axis first ([num, T, ...]); move it behind time.
+    traj = jax.tree.map(lambda x: jnp.moveaxis(x[it, :, b], 0, 1), per_step)
+    traj = traj._replace(last_obs=store.traj.last_obs[it, b])
+    return OffPolicyStore(traj, (score >= 0).astype(jnp.float32))
+
+
+def sequence_init(num_slots: int, T: int, num_skilled: int, num_offpolicy: int, obs_size: int,
+                  action_size: int) -> SequenceStores:
+    """Empty stores for a sequence of ``num_slots`` tasks."""
+    skilled = jax.tree.map(lambda x: jnp.broadcast_to(x, (num_slots,) + x.shape),
+                           skilled_init(T, num_skilled, obs_size, action_size))
+    off = OffPolicyStore(_empty_traj(T, num_offpolicy, obs_size, action_size, (num_slots,)),
+                         jnp.zeros((num_slots, num_offpolicy), jnp.float32))
+    return SequenceStores(skilled, off, jnp.zeros((num_slots,), bool))
+
+
+def sequence_write(stores: SequenceStores, slot: jax.Array, skilled: SkilledStore,
+                   offpolicy: OffPolicyStore) -> SequenceStores:
+    """Writes task ``slot``'s D* and D and marks it valid."""
+    put = lambda buf, x: jax.lax.dynamic_update_index_in_dim(buf, x, slot, 0)  # noqa: E731
+    return SequenceStores(jax.tree.map(put, stores.skilled, skilled), jax.tree.map(put, stores.offpolicy, offpolicy),
+                          stores.task_valid.at[slot].set(True))
+
+
+def sequence_bytes(num_slots: int, T: int, num_skilled: int, num_offpolicy: int, obs_size: int,
+                   action_size: int) -> int:
+    """Bytes of ``SequenceStores`` at these sizes (float32 everywhere)."""
+    shapes = jax.eval_shape(lambda: sequence_init(num_slots, T, num_skilled, num_offpolicy, obs_size, action_size))
+    return sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(shapes))

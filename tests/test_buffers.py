@@ -1,0 +1,94 @@
+"""Tests of the experience stores: the true top-K by return, sampling from the last iterations, masks, memory."""
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+from hypothesis import given, settings, strategies as st
+
+from jcomps import buffers
+from jcomps.acting import Trajectory
+
+T, B, OBS, ACT = 3, 4, 2, 1
+
+
+def _batch(returns, tag):
+    """A batch whose trajectory b has return returns[b] and observations all equal to tag + b."""
+    r = np.asarray(returns, np.float32)
+    obs = np.broadcast_to((tag + np.arange(len(r), dtype=np.float32))[None, :, None], (T, len(r), OBS))
+    ones = np.ones((T, len(r)), np.float32)
+    return Trajectory(jnp.asarray(obs), jnp.zeros((T, len(r), ACT)), jnp.asarray(-ones), jnp.asarray(ones * r / T),
+                      jnp.zeros((T, len(r))), jnp.asarray(ones), jnp.zeros((T, len(r))),
+                      jnp.full((len(r), OBS), tag, jnp.float32))
+
+
+@settings(max_examples=15)
+@given(st.lists(st.lists(st.floats(-100, 100, width=32), min_size=B, max_size=B), min_size=1, max_size=6),
+       st.integers(1, 8))
+def test_skilled_store_keeps_the_true_top_k(batches, k):
+    store = buffers.skilled_init(T, k, OBS, ACT)
+    update = jax.jit(buffers.skilled_update)
+    everything = []
+    for i, rets in enumerate(batches):
+        store = update(store, _batch(rets, 100.0 * i))
+        everything += [(r, 100.0 * i + b) for b, r in enumerate(rets)]
+    expected = sorted((np.float32(np.sum(np.full(T, np.float32(r) / T, np.float32))) for r, _ in everything),
+                      reverse=True)[:k]
+    kept = np.sort(np.asarray(store.returns)[np.isfinite(store.returns)])[::-1]
+    np.testing.assert_allclose(kept, expected, rtol=1e-5, atol=1e-4)
+    # Each kept row's data travels with its return: the obs tag identifies the trajectory.
+    by_tag = {tag: np.sum(np.full(T, np.float32(r) / T, np.float32)) for r, tag in everything}
+    for row in range(min(k, len(everything))):
+        tag = float(store.obs[0, row, 0])
+        np.testing.assert_allclose(store.returns[row], by_tag[tag], rtol=1e-5, atol=1e-4)
+
+
+def test_offpolicy_samples_only_the_last_iterations():
+    capacity = 3
+    ring = buffers.recent_init(capacity, T, B, OBS, ACT)
+    for i in range(5):  # iterations 0..4; the ring keeps 2, 3, 4
+        ring = buffers.recent_add(ring, _batch(np.zeros(B), 100.0 * i))
+    off = buffers.sample_offpolicy(ring, 12, jax.random.PRNGKey(0))
+    chex.assert_shape(off.traj.obs, (T, 12, OBS))
+    chex.assert_shape(off.traj.last_obs, (12, OBS))
+    tags = np.asarray(off.traj.obs[0, :, 0])
+    assert set(np.floor(tags / 100).astype(int)) == {2, 3, 4}
+    assert len(set(tags.tolist())) == 12  # without replacement
+    np.testing.assert_array_equal(off.mask, np.ones(12))
+    np.testing.assert_array_equal(np.floor(tags / 100) * 100, off.traj.last_obs[:, 0])
+    np.testing.assert_array_equal(off.traj.log_prob, -np.ones((T, 12)))
+
+
+def test_offpolicy_masks_rows_it_cannot_fill():
+    ring = buffers.recent_add(buffers.recent_init(4, T, B, OBS, ACT), _batch(np.zeros(B), 0.0))  # M = 1
+    off = buffers.sample_offpolicy(ring, 6, jax.random.PRNGKey(1))
+    np.testing.assert_array_equal(np.sort(np.asarray(off.mask)), [0, 0, 1, 1, 1, 1])
+    valid_tags = np.asarray(off.traj.obs[0, :, 0])[np.asarray(off.mask) > 0]
+    assert sorted(valid_tags.tolist()) == [0.0, 1.0, 2.0, 3.0]
+
+
+def test_sequence_write_fills_one_slot_and_marks_it():
+    stores = buffers.sequence_init(5, T, 2, 3, OBS, ACT)
+    skilled = buffers.skilled_update(buffers.skilled_init(T, 2, OBS, ACT), _batch([1.0, 5.0, 3.0, 2.0], 7.0))
+    ring = buffers.recent_add(buffers.recent_init(1, T, B, OBS, ACT), _batch(np.zeros(B), 9.0))
+    off = buffers.sample_offpolicy(ring, 3, jax.random.PRNGKey(0))
+    out = jax.jit(buffers.sequence_write)(stores, jnp.int32(2), skilled, off)
+    np.testing.assert_array_equal(out.task_valid, [False, False, True, False, False])
+    chex.assert_trees_all_equal(jax.tree.map(lambda x: x[2], out.skilled), skilled)
+    chex.assert_trees_all_equal(jax.tree.map(lambda x: x[0], out.skilled),
+                                jax.tree.map(lambda x: x[0], stores.skilled))
+
+
+def test_recent_capacity_is_five_percent_of_the_budget_rounded_up():
+    assert buffers.recent_capacity(1000) == 50
+    assert buffers.recent_capacity(500) == 25
+    assert buffers.recent_capacity(300) == 15
+    assert buffers.recent_capacity(10) == 1
+
+
+def test_memory_of_a_40_task_ant_sequence():
+    # Paper sizes: 40 tasks, T = 200, 20 skilled and 100 off-policy trajectories, Ant obs 27, action 8.
+    nbytes = buffers.sequence_bytes(40, 200, 20, 100, 27, 8)
+    per_step = {"skilled": 27 + 8 + 1, "offpolicy": 27 + 8 + 5}
+    expected = 4 * 40 * (200 * 20 * per_step["skilled"] + 20 + 200 * 100 * per_step["offpolicy"] + 100 * 27 + 100)
+    assert nbytes == expected + 40  # plus the task_valid mask (bool)
