@@ -1,0 +1,107 @@
+"""Tests of the meta step: the meta-gradient against finite differences, second vs first order, masked slots,
+and that meta training lowers the outer behaviour-cloning loss."""
+
+import dataclasses
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jcomps import buffers, meta, networks
+from jcomps.acting import Trajectory
+
+T, OBS, ACT, SLOTS, SKILLED, OFF = 4, 2, 1, 3, 3, 4
+CONFIG = meta.MetaConfig(inner_trajectories=3, skilled_trajectories=2, inner_learning_rate=0.5, num_meta_steps=20,
+                         num_outer_steps=1, outer_learning_rate=0.01)
+
+
+def _stores(seed, dtype=np.float32):
+    rng = np.random.default_rng(seed)
+    f = lambda *s: rng.normal(size=s).astype(dtype)  # noqa: E731
+    traj = Trajectory(f(SLOTS, T, OFF, OBS), f(SLOTS, T, OFF, ACT), f(SLOTS, T, OFF) - 1.0, f(SLOTS, T, OFF),
+                      np.zeros((SLOTS, T, OFF), dtype), np.ones((SLOTS, T, OFF), dtype),
+                      np.zeros((SLOTS, T, OFF), dtype), f(SLOTS, OFF, OBS))
+    skilled = buffers.SkilledStore(f(SLOTS, T, SKILLED, OBS), 0.3 + 0.1 * f(SLOTS, T, SKILLED, ACT),
+                                   np.ones((SLOTS, T, SKILLED), dtype), f(SLOTS, SKILLED))
+    return buffers.SequenceStores(skilled, buffers.OffPolicyStore(traj, np.ones((SLOTS, OFF), dtype)),
+                                  np.array([True, True, False]))
+
+
+def _params(dtype=jnp.float32):
+    ac = networks.init_actor_critic(jax.random.PRNGKey(0), OBS, ACT, (5,), 0.5)
+    value = meta.init_value_heads(jax.random.PRNGKey(1), OBS, (5,), SLOTS)
+    return jax.tree.map(lambda x: x.astype(dtype), (ac.policy, value))
+
+
+@pytest.mark.parametrize("first_order", [False, True])
+def test_meta_gradient_matches_finite_differences(first_order):
+    # Importance weights are constants by design (no gradient through ρ), so the loss is an exact function of θ
+    # only without them; with them, finite differences would also move ρ.
+    config = dataclasses.replace(CONFIG, importance_sampling=False)
+    with jax.enable_x64(True):
+        stores = jax.tree.map(lambda x: jnp.asarray(x), _stores(0, np.float64))
+        policy, value = _params(jnp.float64)
+        batches = meta.sample_batches(config, stores, jax.random.PRNGKey(2))
+        loss = lambda p: meta.meta_loss(config, p, value, batches, stores.task_valid)  # noqa: E731
+        grad = jax.grad(lambda p: meta.meta_loss(dataclasses.replace(config, first_order=first_order), p, value,
+                                                 batches, stores.task_valid))(policy)
+        direction = jax.tree.map(lambda x: jnp.asarray(np.random.default_rng(3).normal(size=x.shape)), policy)
+        eps = 1e-5
+        shift = lambda s: jax.tree.map(lambda p, d: p + s * eps * d, policy, direction)  # noqa: E731
+        numeric = (loss(shift(1.0)) - loss(shift(-1.0))) / (2 * eps)
+        analytic = sum(jnp.vdot(g, d) for g, d in zip(jax.tree.leaves(grad), jax.tree.leaves(direction)))
+        if first_order:  # the first-order gradient drops the inner step's curvature: it must not match
+            assert abs(float(analytic) - float(numeric)) > 1e-3 * abs(float(numeric))
+        else:
+            np.testing.assert_allclose(float(analytic), float(numeric), rtol=1e-5)
+
+
+def test_second_order_differs_from_first_order():
+    stores = _stores(1)
+    policy, value = _params()
+    batches = meta.sample_batches(CONFIG, stores, jax.random.PRNGKey(0))
+    grads = [jax.grad(meta.meta_loss, argnums=1)(dataclasses.replace(CONFIG, first_order=fo), policy, value, batches,
+                                                 stores.task_valid) for fo in (False, True)]
+    diff = max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(*map(jax.tree.leaves, grads)))
+    assert diff > 1e-4
+
+
+def test_masked_tasks_change_nothing():
+    stores = _stores(2)
+    policy, value = _params()
+    other = _stores(99)
+    # Slot 2 is unseen; give it entirely different (and even NaN) data.
+    garbage = jax.tree.map(lambda a, b: np.concatenate([a[:2], b[2:]]), stores, other)
+    garbage = garbage._replace(task_valid=stores.task_valid,
+                               skilled=garbage.skilled._replace(obs=garbage.skilled.obs.copy()))
+    garbage.skilled.obs[2] = np.nan
+    for cfg in (CONFIG, dataclasses.replace(CONFIG, importance_sampling=False, vtrace_baseline=False)):
+        b1 = meta.sample_batches(cfg, stores, jax.random.PRNGKey(0))
+        b2 = meta.sample_batches(cfg, garbage, jax.random.PRNGKey(0))
+        l1, g1 = jax.value_and_grad(meta.meta_loss, argnums=1)(cfg, policy, value, b1, stores.task_valid)
+        l2, g2 = jax.value_and_grad(meta.meta_loss, argnums=1)(cfg, policy, value, b2, garbage.task_valid)
+        chex.assert_trees_all_close((l1, g1), (l2, g2), rtol=1e-6)
+        assert np.isfinite(float(l2))
+
+
+def test_meta_training_lowers_the_outer_bc_loss():
+    stores = _stores(3)
+    policy, value = _params()
+    p_opt, v_opt = meta.optimizers(CONFIG)
+    state = meta.MetaState(policy, value, p_opt.init(policy), v_opt.init(value))
+    batches = meta.sample_batches(CONFIG, stores, jax.random.PRNGKey(7))
+    before = meta.meta_loss(CONFIG, policy, value, batches, stores.task_valid)
+    new, losses = jax.jit(lambda s, r: meta.meta_train(CONFIG, s, stores, r))(state, jax.random.PRNGKey(1))
+    after = meta.meta_loss(CONFIG, new.policy, new.value, batches, stores.task_valid)
+    assert float(after) < float(before) - 0.05, (before, after)
+    chex.assert_shape(losses, (CONFIG.num_meta_steps * CONFIG.num_outer_steps,))
+    assert np.all(np.isfinite(losses))
+
+
+@pytest.mark.parametrize("field,value", [("inner_learning_rate", 0.0), ("num_meta_steps", -1),
+                                         ("inner_trajectories", 0), ("discount", 0.0)])
+def test_bad_meta_config_names_the_field(field, value):
+    with pytest.raises(ValueError, match=field):
+        meta.MetaConfig(**{field: value})
