@@ -43,6 +43,10 @@ def parse_args(argv=None):
         args.configs = {m: cli.build_config(methods.config_class(m), args) for m in args.methods}
     except (ValueError, TypeError) as err:
         parser.error(str(err))
+    for name, config in args.configs.items():
+        if getattr(config, "max_tasks", args.num_tasks) < args.num_tasks:
+            parser.error(f"--max-tasks {config.max_tasks} is smaller than --num-tasks {args.num_tasks} ({name} "
+                         f"keeps one experience slot per task)")
     args.out = args.out or os.path.join("runs", f"{args.family}-{time.strftime('%Y%m%d-%H%M%S')}")
     if os.path.exists(os.path.join(args.out, "results.json")):
         parser.error(f"--out {args.out} already holds a run (results.json); choose another directory")

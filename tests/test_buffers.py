@@ -92,3 +92,10 @@ def test_memory_of_a_40_task_ant_sequence():
     per_step = {"skilled": 27 + 8 + 1, "offpolicy": 27 + 8 + 5}
     expected = 4 * 40 * (200 * 20 * per_step["skilled"] + 20 + 200 * 100 * per_step["offpolicy"] + 100 * 27 + 100)
     assert nbytes == expected + 40  # plus the task_valid mask (bool)
+
+
+def test_pick_rows_masks_what_it_cannot_fill():
+    idx, ok = buffers.pick_rows(jax.random.PRNGKey(0), jnp.array([True, False, True]), 5)
+    chex.assert_shape(idx, (5,))
+    np.testing.assert_array_equal(np.sort(np.asarray(idx)[np.asarray(ok) > 0]), [0, 2])
+    assert float(ok.sum()) == 2.0

@@ -106,20 +106,31 @@ def recent_add(store: RecentStore, traj: Trajectory) -> RecentStore:
     return RecentStore(new, store.iterations + 1)
 
 
+def pick_rows(rng: jax.Array, ok: jax.Array, num: int) -> tuple[jax.Array, jax.Array]:
+    """``num`` indices into the rows of bool[n] ``ok``, drawn uniformly without replacement among the ok rows,
+    and f32[num], 1 where the picked row is ok. Rows beyond the ok ones (or beyond n) are masked out."""
+    n = ok.shape[0]
+    keys = jnp.where(ok, jax.random.uniform(rng, (n,)), -1.0)
+    score, idx = jax.lax.top_k(keys, min(num, n))
+    if num > n:
+        idx = jnp.concatenate([idx, jnp.zeros((num - n,), idx.dtype)])
+        score = jnp.concatenate([score, jnp.full((num - n,), -1.0, score.dtype)])
+    return idx, (score >= 0).astype(jnp.float32)
+
+
 def sample_offpolicy(store: RecentStore, num: int, rng: jax.Array) -> OffPolicyStore:
     """``num`` trajectories drawn without replacement from every iteration in the ring (the last
     min(M, capacity) iterations); if fewer exist, the rest of the rows are masked out."""
     capacity, _, B = store.traj.reward.shape
     filled = jnp.minimum(store.iterations, capacity)
     candidate_ok = (jnp.arange(capacity) < filled)[:, None] & jnp.ones((1, B), bool)
-    keys = jnp.where(candidate_ok.reshape(-1), jax.random.uniform(rng, (capacity * B,)), -1.0)
-    score, flat_idx = jax.lax.top_k(keys, num)
+    flat_idx, picked = pick_rows(rng, candidate_ok.reshape(-1), num)
     it, b = flat_idx // B, flat_idx % B
     per_step = store.traj._replace(last_obs=None)
     # x[it, :, b] puts the sampled axis first ([num, T, ...]); move it behind time.
     traj = jax.tree.map(lambda x: jnp.moveaxis(x[it, :, b], 0, 1), per_step)
     traj = traj._replace(last_obs=store.traj.last_obs[it, b])
-    return OffPolicyStore(traj, (score >= 0).astype(jnp.float32))
+    return OffPolicyStore(traj, picked)
 
 
 def sequence_init(num_slots: int, T: int, num_skilled: int, num_offpolicy: int, obs_size: int,

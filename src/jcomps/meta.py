@@ -162,21 +162,14 @@ def value_loss(config: MetaConfig, policy, value, batches: TaskBatch, task_valid
     return _masked_mean(jnp.where(task_valid, losses, 0.0), task_valid.astype(jnp.float32))
 
 
-def _pick(rng, ok, num):
-    """``num`` row indices drawn without replacement among rows where ``ok``; (indices, picked-row ok)."""
-    keys = jnp.where(ok, jax.random.uniform(rng, ok.shape), -1.0)
-    score, idx = jax.lax.top_k(keys, num)
-    return idx, (score >= 0).astype(jnp.float32)
-
-
 def sample_batches(config: MetaConfig, stores: buffers.SequenceStores, rng) -> TaskBatch:
     """Samples each slot's inner (D_j) and outer (D*_j) trajectories; leading axis [num_slots]."""
     def one(key, skilled: buffers.SkilledStore, off: buffers.OffPolicyStore):
         k1, k2 = jax.random.split(key)
-        idx, ok = _pick(k1, off.mask > 0, config.inner_trajectories)
+        idx, ok = buffers.pick_rows(k1, off.mask > 0, config.inner_trajectories)
         per_step = off.traj._replace(last_obs=None)
         traj = jax.tree.map(lambda x: jnp.take(x, idx, axis=1), per_step)._replace(last_obs=off.traj.last_obs[idx])
-        sidx, sok = _pick(k2, jnp.isfinite(skilled.returns), config.skilled_trajectories)
+        sidx, sok = buffers.pick_rows(k2, jnp.isfinite(skilled.returns), config.skilled_trajectories)
         return TaskBatch(buffers.OffPolicyStore(traj, ok), jnp.take(skilled.obs, sidx, axis=1),
                          jnp.take(skilled.action, sidx, axis=1), jnp.take(skilled.valid, sidx, axis=1) * sok)
 

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 from jcomps.envs.base import Family
-from jcomps.methods import ppo_tl
+from jcomps.methods import comps, ppo_tl
 from jcomps.methods.base import Method, TaskMetrics
 
 # name -> (config class, constructor(family, config) -> Method)
 REGISTRY = {
     "ppo_tl": (ppo_tl.PPOTLConfig, ppo_tl.make),
+    "comps": (comps.CoMPSConfig, comps.make),
+    "gmps_ppo": (comps.GMPSPPOConfig, comps.make_gmps_ppo),
 }
 METHODS = tuple(REGISTRY)
 

@@ -1,0 +1,114 @@
+"""CoMPS (Continual Meta Policy Search) and its GMPS+PPO ablation.
+
+Per task i: the RL step (PPO from θ_i) while the experience stores are filled (D*_i: top-20 trajectories by
+return, kept incrementally; D_i: 100 trajectories from the last ⌈0.05·N⌉ iterations with behaviour
+log-probabilities); then the meta step over every seen task j ≤ i, warm-started (FTML) from the policy that just
+finished task i; θ_{i+1} is its result.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from jcomps import buffers, meta, networks, ppo
+from jcomps.envs.base import Family
+from jcomps.methods.base import Method, TaskMetrics
+
+
+@dataclasses.dataclass(frozen=True)
+class CoMPSConfig:
+    """Configuration of CoMPS."""
+
+    ppo: ppo.PPOConfig = ppo.PPOConfig()
+    """The RL step's hyperparameters."""
+    meta: meta.MetaConfig = meta.MetaConfig()
+    """The meta step's hyperparameters."""
+    max_tasks: int = 40
+    """Task slots in the experience stores: at least the sequence length."""
+    num_skilled: int = 20
+    """|D*_i|, highest-return trajectories kept per task (paper: 20; 40 is the 'skilled data x2' ablation)."""
+    num_offpolicy: int = 100
+    """|D_i|, trajectories sampled from the last iterations (paper: 100)."""
+    recent_fraction: float = 0.05
+    """D_i comes from the last min(M, ceil(recent_fraction * N)) iterations (paper: 0.05)."""
+    warm_start: bool = True
+    """Start each meta step from the policy that just finished the task (FTML); off: from the last meta policy."""
+    reset_optimizer: bool = True
+    """Start each task's RL step with a fresh PPO Adam state."""
+
+    def __post_init__(self):
+        ppo._check(self.max_tasks >= 1, "max_tasks", self.max_tasks, "an integer >= 1")
+        ppo._check(self.num_skilled >= 1, "num_skilled", self.num_skilled, "an integer >= 1")
+        ppo._check(self.num_offpolicy >= 1, "num_offpolicy", self.num_offpolicy, "an integer >= 1")
+        ppo._check(0 < self.recent_fraction <= 1, "recent_fraction", self.recent_fraction, "a number in (0, 1]")
+
+
+@dataclasses.dataclass(frozen=True)
+class GMPSPPOConfig(CoMPSConfig):
+    """GMPS+PPO: CoMPS's meta step without importance weights or V-trace (the paper's main ablation)."""
+
+    meta: meta.MetaConfig = meta.MetaConfig(importance_sampling=False, vtrace_baseline=False)
+    """The meta step's hyperparameters (importance sampling and V-trace off)."""
+
+
+class CoMPSState(NamedTuple):
+    """Everything CoMPS carries between tasks.
+
+    params: PPO actor-critic (policy = θ_i); opt_state: PPO Adam; meta: MetaState (meta policy, per-task value
+    heads, Adam states); stores: SequenceStores; rng; task_index: i32[].
+    """
+
+    params: networks.ActorCriticParams
+    opt_state: Any
+    meta: meta.MetaState
+    stores: buffers.SequenceStores
+    rng: jax.Array
+    task_index: jax.Array
+
+
+def make(family: Family, config: CoMPSConfig = CoMPSConfig(), name: str = "comps") -> Method:
+    optimizer = ppo.make_optimizer(config.ppo)
+    policy_opt, value_opt = meta.optimizers(config.meta)
+    budget = config.ppo.budget_for(family)
+    capacity = buffers.recent_capacity(budget, config.recent_fraction)
+    T, B = family.max_steps, config.ppo.num_trajectories
+
+    def init(rng: jax.Array) -> CoMPSState:
+        rng, k_ac, k_v = jax.random.split(rng, 3)
+        params = ppo.init_params(config.ppo, family, k_ac)
+        value = meta.init_value_heads(k_v, family.obs_size, config.ppo.hidden_sizes, config.max_tasks)
+        meta_state = meta.MetaState(params.policy, value, policy_opt.init(params.policy), value_opt.init(value))
+        stores = buffers.sequence_init(config.max_tasks, T, config.num_skilled, config.num_offpolicy,
+                                       family.obs_size, family.action_size)
+        return CoMPSState(params, optimizer.init(params), meta_state, stores, rng, jnp.int32(0))
+
+    def observe(aux, traj, iteration):
+        del iteration
+        skilled, recent = aux
+        return buffers.skilled_update(skilled, traj), buffers.recent_add(recent, traj)
+
+    def learn_task(state: CoMPSState, task) -> tuple[CoMPSState, TaskMetrics]:
+        rng, k_rl, k_off, k_meta = jax.random.split(state.rng, 4)
+        opt_state = optimizer.init(state.params) if config.reset_optimizer else state.opt_state
+        aux0 = (buffers.skilled_init(T, config.num_skilled, family.obs_size, family.action_size),
+                buffers.recent_init(capacity, T, B, family.obs_size, family.action_size))
+        out = ppo.rl_step(config.ppo, family, state.params, opt_state, task, k_rl, observe=observe, aux=aux0)
+        skilled, recent = out.aux
+        offpolicy = buffers.sample_offpolicy(recent, config.num_offpolicy, k_off)
+        stores = buffers.sequence_write(state.stores, state.task_index, skilled, offpolicy)
+        start = out.params.policy if config.warm_start else state.meta.policy
+        meta_state = state.meta._replace(policy=start)
+        meta_state, _ = meta.meta_train(config.meta, meta_state, stores, k_meta)
+        params = out.params._replace(policy=meta_state.policy)
+        new = CoMPSState(params, out.opt_state, meta_state, stores, rng, state.task_index + 1)
+        return new, TaskMetrics(out.iterations, out.solved, out.metrics)
+
+    return Method(name, config, family, init, learn_task)
+
+
+def make_gmps_ppo(family: Family, config: GMPSPPOConfig = GMPSPPOConfig()) -> Method:
+    return make(family, config, name="gmps_ppo")
