@@ -52,6 +52,8 @@ def test_defaults_are_the_dataclass_defaults(runner):
     (["--seeds", "0"], "--seeds must be >= 1"),
     (["--num-tasks", "41"], re.escape("--num-tasks must be in [1, 40]")),
     (["--sequence", "shuffled"], "invalid choice: 'shuffled'"),
+    (["--methods", "comps", "--num-tasks", "5", "--max-tasks", "3"], "--max-tasks 3 is smaller than --num-tasks 5"),
+    (["--methods", "comps", "--inner-learning-rate", "0"], "inner_learning_rate=0.0"),
 ])
 def test_bad_input_exits_2_with_a_message(runner, argv, message, capsys):
     with pytest.raises(SystemExit) as info:
