@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import optax
 
 from jcomps import buffers, networks, vtrace
-from jcomps.ppo import _check
+from jcomps.ppo import check_field
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,12 +60,12 @@ class MetaConfig:
     def __post_init__(self):
         for name in ("outer_learning_rate", "inner_learning_rate", "value_learning_rate", "rho_bar", "c_bar",
                      "pg_rho_bar"):
-            _check(getattr(self, name) > 0, name, getattr(self, name), "a number > 0")
+            check_field(getattr(self, name) > 0, name, getattr(self, name), "a number > 0")
         for name in ("num_meta_steps", "num_outer_steps"):
-            _check(getattr(self, name) >= 0, name, getattr(self, name), "an integer >= 0")
+            check_field(getattr(self, name) >= 0, name, getattr(self, name), "an integer >= 0")
         for name in ("inner_trajectories", "skilled_trajectories"):
-            _check(getattr(self, name) >= 1, name, getattr(self, name), "an integer >= 1")
-        _check(0 < self.discount <= 1, "discount", self.discount, "a number in (0, 1]")
+            check_field(getattr(self, name) >= 1, name, getattr(self, name), "an integer >= 1")
+        check_field(0 < self.discount <= 1, "discount", self.discount, "a number in (0, 1]")
 
 
 class TaskBatch(NamedTuple):

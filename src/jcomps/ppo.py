@@ -58,27 +58,28 @@ class PPOConfig:
     """Iterations per task N; None takes the family's paper value (500 Cheetah, 1000 Ant, 100 Point Goal)."""
 
     def __post_init__(self):
-        _check(self.num_trajectories >= 1, "num_trajectories", self.num_trajectories, "an integer >= 1")
-        _check(self.num_updates >= 0, "num_updates", self.num_updates, "an integer >= 0")
-        _check(self.minibatch_size >= 1, "minibatch_size", self.minibatch_size, "an integer >= 1")
-        _check(self.learning_rate > 0, "learning_rate", self.learning_rate, "a number > 0")
-        _check(self.init_std > 0, "init_std", self.init_std, "a number > 0")
-        _check(len(self.hidden_sizes) >= 1 and all(h >= 1 for h in self.hidden_sizes), "hidden_sizes",
+        check_field(self.num_trajectories >= 1, "num_trajectories", self.num_trajectories, "an integer >= 1")
+        check_field(self.num_updates >= 0, "num_updates", self.num_updates, "an integer >= 0")
+        check_field(self.minibatch_size >= 1, "minibatch_size", self.minibatch_size, "an integer >= 1")
+        check_field(self.learning_rate > 0, "learning_rate", self.learning_rate, "a number > 0")
+        check_field(self.init_std > 0, "init_std", self.init_std, "a number > 0")
+        check_field(len(self.hidden_sizes) >= 1 and all(h >= 1 for h in self.hidden_sizes), "hidden_sizes",
                self.hidden_sizes, "one or more positive layer widths")
-        _check(self.clip_epsilon > 0, "clip_epsilon", self.clip_epsilon, "a number > 0")
-        _check(0 < self.discount <= 1, "discount", self.discount, "a number in (0, 1]")
-        _check(0 <= self.gae_lambda <= 1, "gae_lambda", self.gae_lambda, "a number in [0, 1]")
-        _check(self.value_coef >= 0, "value_coef", self.value_coef, "a number >= 0")
-        _check(self.entropy_coef >= 0, "entropy_coef", self.entropy_coef, "a number >= 0")
-        _check(self.max_grad_norm > 0, "max_grad_norm", self.max_grad_norm, "a number > 0")
-        _check(self.budget is None or self.budget >= 1, "budget", self.budget, "None or an integer >= 1")
+        check_field(self.clip_epsilon > 0, "clip_epsilon", self.clip_epsilon, "a number > 0")
+        check_field(0 < self.discount <= 1, "discount", self.discount, "a number in (0, 1]")
+        check_field(0 <= self.gae_lambda <= 1, "gae_lambda", self.gae_lambda, "a number in [0, 1]")
+        check_field(self.value_coef >= 0, "value_coef", self.value_coef, "a number >= 0")
+        check_field(self.entropy_coef >= 0, "entropy_coef", self.entropy_coef, "a number >= 0")
+        check_field(self.max_grad_norm > 0, "max_grad_norm", self.max_grad_norm, "a number > 0")
+        check_field(self.budget is None or self.budget >= 1, "budget", self.budget, "None or an integer >= 1")
 
     def budget_for(self, family: Family) -> int:
         """Iterations per task for ``family``."""
         return family.default_budget if self.budget is None else self.budget
 
 
-def _check(ok: bool, field: str, value, allowed: str):
+def check_field(ok: bool, field: str, value, allowed: str):
+    """Raises ValueError naming ``field``, its ``value`` and what is ``allowed`` unless ``ok`` (NaN is never ok)."""
     if not ok or isinstance(value, float) and math.isnan(value):
         raise ValueError(f"invalid config value {field}={value!r}; allowed: {allowed}")
 

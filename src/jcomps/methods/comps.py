@@ -41,10 +41,10 @@ class CoMPSConfig:
     """Start each task's RL step with a fresh PPO Adam state."""
 
     def __post_init__(self):
-        ppo._check(self.max_tasks >= 1, "max_tasks", self.max_tasks, "an integer >= 1")
-        ppo._check(self.num_skilled >= 1, "num_skilled", self.num_skilled, "an integer >= 1")
-        ppo._check(self.num_offpolicy >= 1, "num_offpolicy", self.num_offpolicy, "an integer >= 1")
-        ppo._check(0 < self.recent_fraction <= 1, "recent_fraction", self.recent_fraction, "a number in (0, 1]")
+        ppo.check_field(self.max_tasks >= 1, "max_tasks", self.max_tasks, "an integer >= 1")
+        ppo.check_field(self.num_skilled >= 1, "num_skilled", self.num_skilled, "an integer >= 1")
+        ppo.check_field(self.num_offpolicy >= 1, "num_offpolicy", self.num_offpolicy, "an integer >= 1")
+        ppo.check_field(0 < self.recent_fraction <= 1, "recent_fraction", self.recent_fraction, "a number in (0, 1]")
 
 
 @dataclasses.dataclass(frozen=True)
