@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import optax
 
 from jcomps import buffers, networks, vtrace
-from jcomps.ppo import check_field
+from jcomps.ppo import all_finite, check_field, masked_mean
 
 
 @dataclasses.dataclass(frozen=True)
@@ -77,10 +77,6 @@ class TaskBatch(NamedTuple):
     skilled_valid: jax.Array
 
 
-def _masked_mean(x, mask):
-    return jnp.sum(x * mask) / jnp.maximum(jnp.sum(mask), 1.0)
-
-
 def init_value_heads(rng, obs_size: int, hidden_sizes, num_slots: int) -> list:
     """A value MLP with one output per task slot."""
     return networks.mlp_init(rng, (obs_size, *hidden_sizes, num_slots))
@@ -114,7 +110,7 @@ def adapt(config: MetaConfig, policy, off: buffers.OffPolicyStore, advantages):
     mask = off.traj.valid * off.mask[None, :]
 
     def objective(p):
-        return _masked_mean(networks.policy_log_prob(p, off.traj.obs, off.traj.action) * advantages, mask)
+        return masked_mean(networks.policy_log_prob(p, off.traj.obs, off.traj.action) * advantages, mask)
 
     grads = jax.grad(objective)(policy)
     if config.first_order:
@@ -124,7 +120,7 @@ def adapt(config: MetaConfig, policy, off: buffers.OffPolicyStore, advantages):
 
 def bc_loss(policy, obs, action, valid):
     """Behaviour cloning: −mean log π(a|s) over valid samples."""
-    return -_masked_mean(networks.policy_log_prob(policy, obs, action), valid)
+    return -masked_mean(networks.policy_log_prob(policy, obs, action), valid)
 
 
 def task_loss(config: MetaConfig, policy, value, slot, batch: TaskBatch):
@@ -148,7 +144,7 @@ def meta_loss(config: MetaConfig, policy, value, batches: TaskBatch, task_valid)
     batches = _zero_unseen(batches, task_valid)
     slots = jnp.arange(task_valid.shape[0])
     losses = jax.vmap(lambda s, b: task_loss(config, policy, value, s, b))(slots, batches)
-    return _masked_mean(jnp.where(task_valid, losses, 0.0), task_valid.astype(jnp.float32))
+    return masked_mean(jnp.where(task_valid, losses, 0.0), task_valid.astype(jnp.float32))
 
 
 def value_loss(config: MetaConfig, policy, value, batches: TaskBatch, task_valid):
@@ -156,10 +152,10 @@ def value_loss(config: MetaConfig, policy, value, batches: TaskBatch, task_valid
     def one(slot, b):
         _, targets = inner_targets(config, policy, value, slot, b.off)
         err = jnp.square(_head(value, b.off.traj.obs, slot) - targets)
-        return _masked_mean(err, b.off.traj.valid * b.off.mask[None, :])
+        return masked_mean(err, b.off.traj.valid * b.off.mask[None, :])
 
     losses = jax.vmap(one)(jnp.arange(task_valid.shape[0]), _zero_unseen(batches, task_valid))
-    return _masked_mean(jnp.where(task_valid, losses, 0.0), task_valid.astype(jnp.float32))
+    return masked_mean(jnp.where(task_valid, losses, 0.0), task_valid.astype(jnp.float32))
 
 
 def sample_batches(config: MetaConfig, stores: buffers.SequenceStores, rng) -> TaskBatch:
@@ -200,7 +196,7 @@ def meta_train(config: MetaConfig, state: MetaState, stores: buffers.SequenceSto
         loss, g = jax.value_and_grad(meta_loss, argnums=1)(config, state.policy, state.value, batches,
                                                              stores.task_valid)
         vg = jax.grad(value_loss, argnums=2)(config, state.policy, state.value, batches, stores.task_valid)
-        finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves((loss, g, vg))]))
+        finite = all_finite((loss, g, vg))
         up, popt = policy_opt.update(g, state.policy_opt, state.policy)
         vup, vopt = value_opt.update(vg, state.value_opt, state.value)
         new = MetaState(optax.apply_updates(state.policy, up), optax.apply_updates(state.value, vup), popt, vopt)

@@ -159,7 +159,8 @@ def gae(rewards, values, bootstrap_value, dones, discount: float, lambda_: float
     return advantages, advantages + values
 
 
-def _masked_mean(x, mask):
+def masked_mean(x, mask):
+    """Mean of ``x`` over entries where ``mask`` is 1 (0 when the mask is empty)."""
     return jnp.sum(x * mask) / jnp.maximum(jnp.sum(mask), 1.0)
 
 
@@ -168,23 +169,24 @@ def ppo_loss(params: networks.ActorCriticParams, batch: dict, config: PPOConfig)
     mask = batch["valid"]
     adv = batch["advantage"]
     if config.normalize_advantages:
-        mean = _masked_mean(adv, mask)
-        std = jnp.sqrt(_masked_mean(jnp.square(adv - mean), mask))
+        mean = masked_mean(adv, mask)
+        std = jnp.sqrt(masked_mean(jnp.square(adv - mean), mask))
         adv = (adv - mean) / (std + 1e-8)
     log_prob = networks.policy_log_prob(params.policy, batch["obs"], batch["action"])
     log_ratio = log_prob - batch["log_prob"]
     ratio = jnp.exp(log_ratio)
     surrogate = jnp.minimum(ratio * adv, jnp.clip(ratio, 1 - config.clip_epsilon, 1 + config.clip_epsilon) * adv)
-    policy_loss = -_masked_mean(surrogate, mask)
-    value_loss = 0.5 * _masked_mean(jnp.square(networks.value_apply(params.value, batch["obs"]) - batch["target"]),
+    policy_loss = -masked_mean(surrogate, mask)
+    value_loss = 0.5 * masked_mean(jnp.square(networks.value_apply(params.value, batch["obs"]) - batch["target"]),
                                     mask)
     entropy = networks.gaussian_entropy(params.policy["log_std"])
-    approx_kl = _masked_mean(ratio - 1.0 - log_ratio, mask)
+    approx_kl = masked_mean(ratio - 1.0 - log_ratio, mask)
     loss = policy_loss + config.value_coef * value_loss - config.entropy_coef * entropy
     return loss, (policy_loss, value_loss, entropy, approx_kl)
 
 
-def _all_finite(tree) -> jax.Array:
+def all_finite(tree) -> jax.Array:
+    """bool[]: whether every leaf of ``tree`` is free of NaN and infinity."""
     return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree)]))
 
 
@@ -214,7 +216,7 @@ def ppo_update(config: PPOConfig, optimizer, params, opt_state, traj: acting.Tra
         params, opt_state, bad = carry
         batch = jax.tree.map(lambda x: x[idx], flat)
         (loss, terms), grads = grad_fn(params, batch, config)
-        finite = _all_finite((loss, grads))
+        finite = all_finite((loss, grads))
         updates, new_opt_state = optimizer.update(grads, opt_state, params)
         new_params = optax.apply_updates(params, updates)
         params, opt_state = jax.tree.map(lambda a, b: jnp.where(finite, a, b), (new_params, new_opt_state),
@@ -259,7 +261,7 @@ def rl_step(config: PPOConfig, family: Family, params: networks.ActorCriticParam
         success_rate = family.success_rate(traj.success)
         mean_return = jnp.mean(jnp.sum(traj.reward, axis=0))
         solved = success_rate >= family.success_threshold
-        rollout_finite = _all_finite((traj.obs, traj.reward))
+        rollout_finite = all_finite((traj.obs, traj.reward))
         aux = c.aux if observe is None else observe(c.aux, traj, c.it)
 
         def update(_):
