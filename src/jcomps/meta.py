@@ -56,6 +56,8 @@ class MetaConfig:
     """Baseline the inner gradient with V-trace targets; off: on-policy returns minus V (GMPS+PPO)."""
     first_order: bool = False
     """Stop the gradient through the inner step (first-order approximation)."""
+    task_chunk: int = 0
+    """Task slots computed in parallel per loop iteration of the meta step; 0: 1 on CPU, 8 on accelerators."""
 
     def __post_init__(self):
         for name in ("outer_learning_rate", "inner_learning_rate", "value_learning_rate", "rho_bar", "c_bar",
@@ -63,6 +65,7 @@ class MetaConfig:
             check_field(getattr(self, name) > 0, name, getattr(self, name), "a number > 0")
         for name in ("num_meta_steps", "num_outer_steps"):
             check_field(getattr(self, name) >= 0, name, getattr(self, name), "an integer >= 0")
+        check_field(self.task_chunk >= 0, "task_chunk", self.task_chunk, "an integer >= 0 (0: by backend)")
         for name in ("inner_trajectories", "skilled_trajectories"):
             check_field(getattr(self, name) >= 1, name, getattr(self, name), "an integer >= 1")
         check_field(0 < self.discount <= 1, "discount", self.discount, "a number in (0, 1]")
@@ -83,36 +86,44 @@ def init_value_heads(rng, obs_size: int, hidden_sizes, num_slots: int) -> list:
 
 
 def _head(value, obs, slot):
-    return jnp.take(networks.mlp_apply(value, obs), slot, axis=-1)
+    """V_slot(obs): the shared torso, then only column ``slot`` of the last layer."""
+    h = networks.mlp_features(value[:-1], obs)
+    return h @ value[-1]["w"][:, slot] + value[-1]["b"][slot]
+
+
+def _vtrace_terms(config: MetaConfig, log_prob, values, bootstrap, off: buffers.OffPolicyStore):
+    """(inner advantages f32[T, m] including clipped ρ, value targets f32[T, m]); constants (no gradient)."""
+    traj = off.traj
+    discounts = config.discount * (1.0 - traj.done)
+    log_rhos = log_prob - traj.log_prob if config.importance_sampling else jnp.zeros_like(traj.log_prob)
+    values, bootstrap, log_rhos = jax.lax.stop_gradient((values, bootstrap, log_rhos))
+    if config.vtrace_baseline:
+        out = vtrace.vtrace(values, bootstrap, traj.reward, discounts, log_rhos, rho_bar=config.rho_bar,
+                            c_bar=config.c_bar, pg_rho_bar=config.pg_rho_bar)
+        return out.pg_advantages, out.vs
+    # No V-trace: the baseline is the plain bootstrapped return; importance weights (if on) still weight the step.
+    returns = vtrace.vtrace(values, bootstrap, traj.reward, discounts, jnp.zeros_like(log_rhos)).vs
+    weights = jnp.minimum(jnp.exp(log_rhos), config.pg_rho_bar) if config.importance_sampling else 1.0
+    return weights * (returns - values), returns
 
 
 def inner_targets(config: MetaConfig, policy, value, slot, off: buffers.OffPolicyStore):
-    """(advantages f32[T, m] including clipped ρ, V-trace value targets f32[T, m]) for the inner step."""
-    traj = off.traj
-    values = _head(value, traj.obs, slot)
-    bootstrap = _head(value, traj.last_obs, slot)
-    discounts = config.discount * (1.0 - traj.done)
-    if config.importance_sampling:
-        log_rhos = networks.policy_log_prob(policy, traj.obs, traj.action) - traj.log_prob
-    else:
-        log_rhos = jnp.zeros_like(traj.log_prob)
-    out = vtrace.vtrace(values, bootstrap, traj.reward, discounts, log_rhos, rho_bar=config.rho_bar,
-                        c_bar=config.c_bar, pg_rho_bar=config.pg_rho_bar)
-    if config.vtrace_baseline:
-        return out.pg_advantages, out.vs
-    on_policy = vtrace.vtrace(values, bootstrap, traj.reward, discounts, jnp.zeros_like(log_rhos))
-    returns = on_policy.vs
-    return jax.lax.stop_gradient(returns - values), returns
+    """(advantages f32[T, m] including clipped ρ, value targets f32[T, m]) for the inner step on slot ``slot``."""
+    log_prob = networks.policy_log_prob(policy, off.traj.obs, off.traj.action)
+    return _vtrace_terms(config, log_prob, _head(value, off.traj.obs, slot), _head(value, off.traj.last_obs, slot),
+                         off)
 
 
-def adapt(config: MetaConfig, policy, off: buffers.OffPolicyStore, advantages):
-    """φ = θ + α ∇_θ J(θ) with J the importance-weighted policy-gradient objective on ``off``."""
+def adapt(config: MetaConfig, policy, off: buffers.OffPolicyStore, advantages, log_prob_vjp=None):
+    """φ = θ + α ∇_θ J(θ) with J the importance-weighted policy-gradient objective on ``off``.
+
+    ``log_prob_vjp``: the VJP of θ ↦ log π_θ(a|s) on ``off`` when the caller already ran that forward pass.
+    """
     mask = off.traj.valid * off.mask[None, :]
-
-    def objective(p):
-        return masked_mean(networks.policy_log_prob(p, off.traj.obs, off.traj.action) * advantages, mask)
-
-    grads = jax.grad(objective)(policy)
+    if log_prob_vjp is None:
+        _, log_prob_vjp = jax.vjp(lambda p: networks.policy_log_prob(p, off.traj.obs, off.traj.action), policy)
+    # ∇_θ masked_mean(log π_θ · Â) is the VJP of log π_θ with cotangent Â·mask / Σmask.
+    (grads,) = log_prob_vjp(advantages * mask / jnp.maximum(jnp.sum(mask), 1.0))
     if config.first_order:
         grads = jax.lax.stop_gradient(grads)
     return jax.tree.map(lambda p, g: p + config.inner_learning_rate * g, policy, grads)
@@ -123,11 +134,27 @@ def bc_loss(policy, obs, action, valid):
     return -masked_mean(networks.policy_log_prob(policy, obs, action), valid)
 
 
+def slot_objective(config: MetaConfig, policy, value, slot, batch: TaskBatch):
+    """L_BC(φ_slot) + the value head's l2, and (L_BC, value l2) as aux, for one task slot.
+
+    Its gradient in ``policy`` is the task's meta-gradient (through the inner step unless ``first_order``); in
+    ``value`` it is the l2 gradient of head ``slot`` (V-trace targets and advantages are constants), so one
+    backward pass serves both. The forward passes of the policy and the value head on D_j are shared between the
+    importance weights, the targets, the inner objective and the value loss.
+    """
+    off = batch.off
+    values = _head(value, off.traj.obs, slot)
+    log_prob, log_prob_vjp = jax.vjp(lambda p: networks.policy_log_prob(p, off.traj.obs, off.traj.action), policy)
+    advantages, targets = _vtrace_terms(config, log_prob, values, _head(value, off.traj.last_obs, slot), off)
+    adapted = adapt(config, policy, off, advantages, log_prob_vjp)
+    bc = bc_loss(adapted, batch.skilled_obs, batch.skilled_action, batch.skilled_valid)
+    value_l2 = masked_mean(jnp.square(values - targets), off.traj.valid * off.mask[None, :])
+    return bc + value_l2, (bc, value_l2)
+
+
 def task_loss(config: MetaConfig, policy, value, slot, batch: TaskBatch):
     """L_BC(φ_j) for one task, with φ_j adapted from ``policy`` on the task's off-policy batch."""
-    advantages, _ = inner_targets(config, policy, value, slot, batch.off)
-    adapted = adapt(config, policy, batch.off, advantages)
-    return bc_loss(adapted, batch.skilled_obs, batch.skilled_action, batch.skilled_valid)
+    return slot_objective(config, policy, value, slot, batch)[1][0]
 
 
 def _zero_unseen(batches: TaskBatch, task_valid) -> TaskBatch:
@@ -140,37 +167,81 @@ def _zero_unseen(batches: TaskBatch, task_valid) -> TaskBatch:
 
 
 def meta_loss(config: MetaConfig, policy, value, batches: TaskBatch, task_valid):
-    """Mean over valid task slots of ``task_loss``; ``batches`` has a leading [num_slots] axis."""
+    """Mean over valid task slots of ``task_loss``; ``batches`` has a leading [num_slots] axis.
+
+    The reference form of the meta objective (all slots at once); ``meta_gradients`` computes its gradient slot
+    by slot for speed.
+    """
     batches = _zero_unseen(batches, task_valid)
     slots = jnp.arange(task_valid.shape[0])
     losses = jax.vmap(lambda s, b: task_loss(config, policy, value, s, b))(slots, batches)
     return masked_mean(jnp.where(task_valid, losses, 0.0), task_valid.astype(jnp.float32))
 
 
-def value_loss(config: MetaConfig, policy, value, batches: TaskBatch, task_valid):
-    """l2 of every valid head against its V-trace targets (targets are constants)."""
-    def one(slot, b):
-        _, targets = inner_targets(config, policy, value, slot, b.off)
-        err = jnp.square(_head(value, b.off.traj.obs, slot) - targets)
-        return masked_mean(err, b.off.traj.valid * b.off.mask[None, :])
+def _sample_slot(config: MetaConfig, key, skilled: buffers.SkilledStore, off: buffers.OffPolicyStore) -> TaskBatch:
+    k1, k2 = jax.random.split(key)
+    idx, ok = buffers.pick_rows(k1, off.mask > 0, config.inner_trajectories)
+    per_step = off.traj._replace(last_obs=None)
+    traj = jax.tree.map(lambda x: jnp.take(x, idx, axis=1), per_step)._replace(last_obs=off.traj.last_obs[idx])
+    sidx, sok = buffers.pick_rows(k2, jnp.isfinite(skilled.returns), config.skilled_trajectories)
+    return TaskBatch(buffers.OffPolicyStore(traj, ok), jnp.take(skilled.obs, sidx, axis=1),
+                     jnp.take(skilled.action, sidx, axis=1), jnp.take(skilled.valid, sidx, axis=1) * sok)
 
-    losses = jax.vmap(one)(jnp.arange(task_valid.shape[0]), _zero_unseen(batches, task_valid))
-    return masked_mean(jnp.where(task_valid, losses, 0.0), task_valid.astype(jnp.float32))
+
+def _slot_batches(config: MetaConfig, stores: buffers.SequenceStores, rng, slots) -> TaskBatch:
+    """Samples for the given slots; slot j always draws with ``fold_in(rng, j)``, whatever else is sampled."""
+    def one(slot):
+        pick = lambda x: jax.lax.dynamic_index_in_dim(x, slot, keepdims=False)  # noqa: E731
+        return _sample_slot(config, jax.random.fold_in(rng, slot), jax.tree.map(pick, stores.skilled),
+                            jax.tree.map(pick, stores.offpolicy))
+
+    return jax.vmap(one)(slots)
 
 
 def sample_batches(config: MetaConfig, stores: buffers.SequenceStores, rng) -> TaskBatch:
     """Samples each slot's inner (D_j) and outer (D*_j) trajectories; leading axis [num_slots]."""
-    def one(key, skilled: buffers.SkilledStore, off: buffers.OffPolicyStore):
-        k1, k2 = jax.random.split(key)
-        idx, ok = buffers.pick_rows(k1, off.mask > 0, config.inner_trajectories)
-        per_step = off.traj._replace(last_obs=None)
-        traj = jax.tree.map(lambda x: jnp.take(x, idx, axis=1), per_step)._replace(last_obs=off.traj.last_obs[idx])
-        sidx, sok = buffers.pick_rows(k2, jnp.isfinite(skilled.returns), config.skilled_trajectories)
-        return TaskBatch(buffers.OffPolicyStore(traj, ok), jnp.take(skilled.obs, sidx, axis=1),
-                         jnp.take(skilled.action, sidx, axis=1), jnp.take(skilled.valid, sidx, axis=1) * sok)
+    return _slot_batches(config, stores, rng, jnp.arange(stores.task_valid.shape[0]))
 
-    num_slots = stores.task_valid.shape[0]
-    return jax.vmap(one)(jax.random.split(rng, num_slots), stores.skilled, stores.offpolicy)
+
+def task_chunk(config: MetaConfig, num_slots: int) -> int:
+    """Slots per loop iteration of ``meta_gradients``: the config's, or 1 on CPU and up to 8 on accelerators."""
+    chunk = config.task_chunk or (1 if jax.default_backend() == "cpu" else 8)
+    return min(chunk, num_slots)
+
+
+def meta_gradients(config: MetaConfig, policy, value, stores: buffers.SequenceStores, rng):
+    """(mean L_BC, ∇_policy, ∇_value) over the valid slots, sampling each slot's batches.
+
+    Equal to ``jax.value_and_grad(meta_loss)`` (and the value-head l2 gradient) on ``sample_batches(config,
+    stores, rng)``, but computed by a loop over chunks of ``task_chunk`` slots that stops after the last valid
+    slot: nothing is spent on tasks not seen yet, and on CPU the per-slot matrix products stay unbatched (a
+    batched ``[slots, n, 27] @ [slots, 27, 128]`` product is ~4x slower there than the same work slot by slot).
+    Unseen slots inside the range are zeroed and their gradients dropped with ``where``, so NaN cannot leak.
+    """
+    task_valid = jnp.asarray(stores.task_valid)
+    num_slots = task_valid.shape[0]
+    chunk = task_chunk(config, num_slots)
+    end = jnp.max(jnp.where(task_valid, jnp.arange(1, num_slots + 1), 0))
+    grad_fn = jax.vmap(jax.grad(slot_objective, argnums=(1, 2), has_aux=True), in_axes=(None, None, None, 0, 0))
+
+    def body(c, acc):
+        slots = c * chunk + jnp.arange(chunk)
+        ok = (slots < num_slots) & task_valid[jnp.minimum(slots, num_slots - 1)]
+        slots = jnp.minimum(slots, num_slots - 1)
+        batch = _zero_unseen(_slot_batches(config, stores, rng, slots), ok)
+        grads, (bc, _) = grad_fn(config, policy, value, slots, batch)
+
+        def total(x):
+            keep = ok.reshape(ok.shape + (1,) * (x.ndim - 1))
+            return jnp.sum(jnp.where(keep, x, jnp.zeros_like(x)), axis=0)
+
+        return jax.tree.map(jnp.add, acc, jax.tree.map(total, (bc, grads)))
+
+    zeros = jax.tree.map(jnp.zeros_like, (jnp.zeros((), jnp.float32), (policy, value)))
+    loss, (g_policy, g_value) = jax.lax.fori_loop(0, (end + chunk - 1) // chunk, body, zeros)
+    count = jnp.maximum(jnp.sum(task_valid.astype(jnp.float32)), 1.0)
+    scale = lambda tree: jax.tree.map(lambda x: x / count, tree)  # noqa: E731
+    return loss / count, scale(g_policy), scale(g_value)
 
 
 class MetaState(NamedTuple):
@@ -192,10 +263,7 @@ def meta_train(config: MetaConfig, state: MetaState, stores: buffers.SequenceSto
     policy_opt, value_opt = optimizers(config)
 
     def outer(state: MetaState, key):
-        batches = sample_batches(config, stores, key)
-        loss, g = jax.value_and_grad(meta_loss, argnums=1)(config, state.policy, state.value, batches,
-                                                             stores.task_valid)
-        vg = jax.grad(value_loss, argnums=2)(config, state.policy, state.value, batches, stores.task_valid)
+        loss, g, vg = meta_gradients(config, state.policy, state.value, stores, key)
         finite = all_finite((loss, g, vg))
         up, popt = policy_opt.update(g, state.policy_opt, state.policy)
         vup, vopt = value_opt.update(vg, state.value_opt, state.value)

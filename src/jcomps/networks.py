@@ -26,11 +26,25 @@ def mlp_init(rng: jax.Array, sizes: Sequence[int], final_scale: float = 1.0) -> 
     return layers
 
 
+def mlp_features(layers: list[dict], x: jax.Array) -> jax.Array:
+    """The tanh layers of an MLP (all but the last) over the last axis of ``x``.
+
+    Leading axes are flattened into one before the matrix products and restored after: XLA's CPU backend runs
+    ``[T, B, n] @ [n, k]`` up to 3x slower than the same product on ``[T·B, n]`` (measured on the policy MLP).
+    """
+    lead = x.shape[:-1]
+    x = x.reshape((-1, x.shape[-1]))
+    for layer in layers:
+        x = jnp.tanh(x @ layer["w"] + layer["b"])
+    return x.reshape(lead + x.shape[-1:])
+
+
 def mlp_apply(layers: list[dict], x: jax.Array) -> jax.Array:
     """tanh MLP over the last axis of ``x``; the last layer is linear."""
-    for layer in layers[:-1]:
-        x = jnp.tanh(x @ layer["w"] + layer["b"])
-    return x @ layers[-1]["w"] + layers[-1]["b"]
+    h = mlp_features(layers[:-1], x)
+    lead = h.shape[:-1]
+    out = h.reshape((-1, h.shape[-1])) @ layers[-1]["w"] + layers[-1]["b"]
+    return out.reshape(lead + out.shape[-1:])
 
 
 class ActorCriticParams(NamedTuple):
