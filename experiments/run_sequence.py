@@ -1,110 +1,127 @@
-"""Run continual-learning methods over a task sequence and report iterations-to-success.
+"""Run continual-learning methods over a task sequence: checkpoints, resume, results, plots.
 
-    python experiments/run_sequence.py                      # PPO+TL on 5 Point Goal tasks, 2 seeds (CPU, minutes)
-    python experiments/run_sequence.py --family cheetah_vel --num-tasks 40 --seeds 6 --budget 500
+    python experiments/run_sequence.py                 # CoMPS vs PPO+TL, 6 Point Goal tasks, 4 seeds (CPU, minutes)
+    python experiments/run_sequence.py --methods comps ppo_tl --sequence stationary --num-tasks 20 --seeds 6
+    python experiments/run_sequence.py --family cheetah_vel --num-tasks 40 --seeds 6 --budget 500 --out runs/cheetah
+    python experiments/run_sequence.py --out runs/cheetah --resume       # continue after a kill
 
-Every method hyperparameter is an option (``--help`` lists them, derived from the config dataclasses).
-Seeds run as one vmapped, jitted program per method. Writes ``results.json`` to the run directory.
+Every option is derived from a config dataclass (``RunConfig``, ``EvalConfig`` and the methods' configs);
+``--help`` lists them. Seeds are a vmap axis sharded over the JAX devices (on CPU, ``--devices`` host devices
+let every core work). The run directory gets ``run.json``, checkpoints after every chunk of tasks,
+``results.json``, ``plots/*.png`` and ``significance.md``; ``experiments/report.py DIR`` regenerates the last
+three. Bad options exit with code 2 and a message naming the option.
 """
 
 from __future__ import annotations
 
-import argparse
-import dataclasses
-import json
 import os
 import sys
-import time
 
-import jax
-import numpy as np
 
-from jcomps import cli, continual, envs, methods
+def _set_host_devices(argv) -> None:
+    """``--devices N`` must reach XLA before JAX is imported (it sets the CPU device count)."""
+    count = str(min(os.cpu_count() or 1, 8))
+    for i, arg in enumerate(argv):
+        if arg == "--devices" and i + 1 < len(argv):
+            count = argv[i + 1]
+        elif arg.startswith("--devices="):
+            count = arg.split("=", 1)[1]
+    if count.isdigit() and int(count) >= 1:
+        flags = [f for f in os.environ.get("XLA_FLAGS", "").split() if "xla_force_host_platform_device_count" not in f]
+        os.environ["XLA_FLAGS"] = " ".join(flags + [f"--xla_force_host_platform_device_count={count}"])
+
+
+if __name__ == "__main__":
+    _set_host_devices(sys.argv[1:])
+
+import argparse  # noqa: E402
+import dataclasses  # noqa: E402
+import json  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from jcomps import cli, continual, envs, experiment, methods, report  # noqa: E402
 
 
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    parser.add_argument("--family", default="point_goal", choices=envs.FAMILIES)
-    parser.add_argument("--sequence", default="non-stationary", choices=envs.SEQUENCE_KINDS)
-    parser.add_argument("--methods", nargs="+", default=["ppo_tl"], choices=methods.METHODS)
-    parser.add_argument("--seeds", type=int, default=2, help="number of seeds (a vmap axis)")
-    parser.add_argument("--seed", type=int, default=0, help="first seed")
-    parser.add_argument("--num-tasks", type=int, default=5, help="length of the sequence (a prefix of the list)")
     parser.add_argument("--out", default=None, help="run directory (default: runs/<family>-<time>)")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue the run in --out from its last checkpoint (options must match it)")
+    parser.add_argument("--devices", type=int, default=min(os.cpu_count() or 1, 8),
+                        help="CPU host devices to shard seeds over (the seed count is split evenly)")
+    parser.add_argument("--tensorboard", action="store_true", help="also write TensorBoard logs (tensorboardX)")
+    cli.add_config_args(parser, [experiment.RunConfig, continual.EvalConfig])
     cli.add_config_args(parser, [methods.config_class(m) for m in methods.METHODS])
     args = parser.parse_args(argv)
-    if args.seeds < 1:
-        parser.error(f"--seeds must be >= 1, got {args.seeds}")
-    family = envs.make(args.family)
-    if not 1 <= args.num_tasks <= len(family.task_values):
-        parser.error(f"--num-tasks must be in [1, {len(family.task_values)}] for {args.family}, got {args.num_tasks}")
+    if args.devices < 1:
+        parser.error(f"--devices must be >= 1, got {args.devices}")
+    if args.resume and not args.out:
+        parser.error("--resume needs --out, the run directory to continue")
     try:
-        args.configs = {m: cli.build_config(methods.config_class(m), args) for m in args.methods}
+        if args.resume:
+            _from_stored(args)
+        else:
+            _from_options(args)
     except (ValueError, TypeError) as err:
         parser.error(str(err))
+    available = len(envs.make(args.run.family).task_values)
+    if args.run.num_tasks > available:
+        parser.error(f"--num-tasks must be in [1, {available}] for {args.run.family}, got {args.run.num_tasks}")
     for name, config in args.configs.items():
-        if getattr(config, "max_tasks", args.num_tasks) < args.num_tasks:
-            parser.error(f"--max-tasks {config.max_tasks} is smaller than --num-tasks {args.num_tasks} ({name} "
+        if getattr(config, "max_tasks", args.run.num_tasks) < args.run.num_tasks:
+            parser.error(f"--max-tasks {config.max_tasks} is smaller than --num-tasks {args.run.num_tasks} ({name} "
                          f"keeps one experience slot per task)")
-    args.out = args.out or os.path.join("runs", f"{args.family}-{time.strftime('%Y%m%d-%H%M%S')}")
-    if os.path.exists(os.path.join(args.out, "results.json")):
-        parser.error(f"--out {args.out} already holds a run (results.json); choose another directory")
     return args
+
+
+def _from_options(args):
+    args.run = cli.build_config(experiment.RunConfig, args)
+    args.eval = cli.build_config(continual.EvalConfig, args)
+    args.configs = {}
+    for name in args.run.methods:
+        config = cli.build_config(methods.config_class(name), args)
+        if hasattr(config, "max_tasks") and args.cfg_max_tasks is None:
+            config = dataclasses.replace(config, max_tasks=args.run.num_tasks)  # one slot per task, no more
+        args.configs[name] = config
+    args.out = args.out or os.path.join("runs", f"{args.run.family}-{time.strftime('%Y%m%d-%H%M%S')}")
+
+
+def _from_stored(args):
+    """On --resume the stored run is the base; options given again must agree with it (checked later)."""
+    path = os.path.join(args.out, "run.json")
+    if not os.path.isfile(path):
+        raise ValueError(f"--resume: {args.out} holds no run (no run.json); start it without --resume")
+    with open(path) as f:
+        stored = json.load(f)
+    args.run = cli.config_from_dict(experiment.RunConfig, stored["run"], args)
+    args.eval = cli.config_from_dict(continual.EvalConfig, stored["eval"], args)
+    args.configs = {name: cli.config_from_dict(methods.config_class(name), stored["methods"].get(name, {}), args)
+                    for name in args.run.methods}
 
 
 def main(argv=None):
     args = parse_args(argv)
-    family = envs.make(args.family)
-    seeds = list(range(args.seed, args.seed + args.seeds))
-    task_values = np.stack([envs.sequence_values(family, args.sequence, s, args.num_tasks) for s in seeds])
-    tasks = family.tasks(task_values.reshape(-1))
-    tasks = jax.tree.map(lambda x: x.reshape((len(seeds), args.num_tasks) + x.shape[1:]), tasks)
-    rngs = jax.vmap(jax.random.PRNGKey)(np.asarray(seeds))
-    os.makedirs(args.out, exist_ok=True)
-    results = {"family": args.family, "sequence": args.sequence, "seeds": seeds,
-               "task_values": task_values.tolist(), "methods": {}}
-
-    for name in args.methods:
-        config = args.configs[name]
-        method = methods.make(name, family, config)
-        budget = config.ppo.budget_for(family)
-        start = time.time()
-
-        def progress(seed_index, task_index, metrics, name=name, start=start):
-            print(f"[{name}] seed {seeds[int(seed_index)]} task {int(task_index) + 1}/{args.num_tasks}: "
-                  f"iterations-to-success {int(metrics.iterations)} solved {bool(metrics.solved)} "
-                  f"elapsed {time.time() - start:.0f}s", flush=True)
-
-        print(f"[{name}] {args.family} {args.sequence}, {args.num_tasks} tasks, {len(seeds)} seeds, "
-              f"budget {budget}; compiling...", flush=True)
-        _, metrics = continual.run_seeds(method, tasks, rngs, progress=progress, tasks_per_seed=True)
-        metrics = jax.device_get(metrics)
-        if np.any(metrics.per_iteration.nonfinite > 0):
-            seed, task, it = np.argwhere(metrics.per_iteration.nonfinite > 0)[0]
-            print(f"error: [{name}] non-finite values (NaN/inf) at seed {seeds[seed]}, task {task}, iteration "
-                  f"{it}; those updates were skipped", file=sys.stderr)
-        its = np.asarray(metrics.iterations)
-        valid = np.asarray(metrics.per_iteration.valid)
-        mean_return = np.where(valid, metrics.per_iteration.mean_return, 0).sum(-1) / np.maximum(valid.sum(-1), 1)
-        results["methods"][name] = {
-            "config": dataclasses.asdict(config),
-            "budget": budget,
-            "iterations_to_success": its.tolist(),
-            "solved": np.asarray(metrics.solved).tolist(),
-            "mean_return_per_task": mean_return.tolist(),
-            "seconds": time.time() - start,
-        }
-        print(f"[{name}] done in {time.time() - start:.0f}s. iterations-to-success (seeds x tasks):")
-        for s, row in zip(seeds, its):
-            print(f"  seed {s}: {row.tolist()}")
-        print(f"  mean over seeds: {np.round(its.mean(0), 1).tolist()}  "
-              f"all solved: {bool(np.all(metrics.solved))}", flush=True)
-
-    with open(os.path.join(args.out, "results.json.tmp"), "w") as f:
-        json.dump(results, f, indent=1)
-    os.replace(os.path.join(args.out, "results.json.tmp"), os.path.join(args.out, "results.json"))
-    print(f"results written to {os.path.join(args.out, 'results.json')}")
+    try:
+        experiment.run(args.out, args.run, args.eval, args.configs, resume=args.resume, tensorboard=args.tensorboard,
+                       log=lambda line: print(line, flush=True))
+        results = report.write(args.out)
+    except experiment.RunError as err:
+        print(f"error: {err}", file=sys.stderr)
+        sys.exit(2)
+    print(f"\nmean iterations-to-success per task ({args.run.seeds} seeds):")
+    for name, m in results["methods"].items():
+        print(f"  {name:10s} {np.round(m['iterations_to_success_mean'], 1).tolist()}")
+    half = args.run.num_tasks // 2
+    if "comps" in results["methods"] and half >= 1:
+        later = {n: float(np.mean(np.asarray(m["iterations_to_success"])[:, half:]))
+                 for n, m in results["methods"].items()}
+        print(f"mean over tasks {half + 1}-{args.run.num_tasks}: " +
+              ", ".join(f"{n} {v:.1f}" for n, v in later.items()))
+    print(open(os.path.join(args.out, "significance.md")).read())
+    print(f"results, plots and checkpoints in {args.out}/")
 
 
 if __name__ == "__main__":

@@ -12,6 +12,7 @@ import ast
 import dataclasses
 import inspect
 import typing
+from typing import Optional
 
 
 def _field_docs(cls) -> dict[str, str]:
@@ -87,4 +88,26 @@ def build_config(cls, args: argparse.Namespace):
             value = getattr(args, f"cfg_{f.name}", None)
             if value is not None:
                 kwargs[f.name] = tuple(value) if isinstance(value, list) else value
+    return cls(**kwargs)
+
+
+def explicit_fields(cls, args: argparse.Namespace) -> set[str]:
+    """Leaf field names of ``cls`` given on the command line."""
+    return {name for name, *_ in flat_fields(cls) if getattr(args, f"cfg_{name}", None) is not None}
+
+
+def config_from_dict(cls, data: dict, args: Optional[argparse.Namespace] = None):
+    """An instance of ``cls`` from its ``dataclasses.asdict``-like ``data`` (lists become tuples), with any
+    options given on the command line in ``args`` put over it."""
+    hints = typing.get_type_hints(cls)
+    kwargs = {}
+    for f in dataclasses.fields(cls):
+        if dataclasses.is_dataclass(hints[f.name]):
+            kwargs[f.name] = config_from_dict(hints[f.name], data.get(f.name, {}), args)
+            continue
+        value = data.get(f.name, f.default)
+        given = getattr(args, f"cfg_{f.name}", None) if args is not None else None
+        if given is not None:
+            value = given
+        kwargs[f.name] = tuple(value) if isinstance(value, list) else value
     return cls(**kwargs)

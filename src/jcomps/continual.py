@@ -1,16 +1,21 @@
 """The continual loop: a method learns a sequence of tasks one at a time, as a ``lax.scan`` over tasks.
 
 Seeds are a ``vmap`` axis: ``run_seeds`` runs S independent seeds (each with its own task order if the
-sequences differ) in one compiled program.
+sequences differ) in one compiled program. ``run_chunk`` is the building block of the experiment runner: it
+learns ``chunk`` tasks from a given position of the sequence and evaluates as it goes (backward transfer), so
+a long sequence runs as a host loop over chunks with a checkpoint between them, every chunk through the same
+compiled program.
 """
 
 from __future__ import annotations
 
-from typing import Any, Callable, Optional
+import dataclasses
+from typing import Any, Callable, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
 
+from jcomps import acting, ppo
 from jcomps.methods.base import Method, TaskMetrics
 
 ProgressFn = Callable[[jax.Array, jax.Array, TaskMetrics], None]
@@ -27,9 +32,9 @@ def run_tasks(method: Method, state: Any, tasks, progress: Optional[ProgressFn] 
     learn = jax.jit(method.learn_task)
 
     def body(state, task):
-        new_state, metrics = learn(state, task)
+        new_state, metrics = learn(state, task, (seed_index, state.task_index))
         if progress is not None:
-            jax.debug.callback(progress, seed_index, getattr(state, "task_index", jnp.int32(-1)), metrics)
+            jax.debug.callback(progress, seed_index, state.task_index, metrics)
         return new_state, metrics
 
     return jax.lax.scan(body, state, tasks)
@@ -50,3 +55,92 @@ def run_seeds(method: Method, tasks, rngs: jax.Array, progress: Optional[Progres
     fn = jax.vmap(lambda t, r, i: run_sequence(method, t, r, progress, i),
                   in_axes=(0 if tasks_per_seed else None, 0, 0))
     return jax.jit(fn)(tasks, rngs, jnp.arange(rngs.shape[0], dtype=jnp.int32))
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalConfig:
+    """Evaluations made while a sequence runs (they never change what the method learns)."""
+
+    backward_tasks: int = 3
+    """After each task, the policy is evaluated on this many previous tasks (backward transfer); 0: off."""
+    heldout_iterations: int = 5
+    """PPO iterations of adaptation on each held-out task, from the current policy, after every chunk."""
+
+    def __post_init__(self):
+        ppo.check_field(self.backward_tasks >= 0, "backward_tasks", self.backward_tasks, "an integer >= 0")
+        ppo.check_field(self.heldout_iterations >= 0, "heldout_iterations", self.heldout_iterations,
+                        "an integer >= 0")
+
+
+class ChunkMetrics(NamedTuple):
+    """What ``run_chunk`` reports for its ``chunk`` task positions (leading axis [chunk]).
+
+    Attributes:
+      task: TaskMetrics of each task learnt.
+      backward_returns: f32[chunk, backward_tasks], mean episode return of the policy after task i on task
+        i − 1 − d (d = 0 … backward_tasks − 1), with ``num_trajectories`` fresh episodes.
+      backward_valid: bool[chunk, backward_tasks], False where i − 1 − d < 0 or the position is past the end.
+      active: bool[chunk], False for positions past the end of the sequence (their metrics are zeros).
+    """
+
+    task: TaskMetrics
+    backward_returns: jax.Array
+    backward_valid: jax.Array
+    active: jax.Array
+
+
+def _mean_return(method: Method, policy, task, rng):
+    traj = acting.rollout(method.family, policy, task, rng, method.config.ppo.num_trajectories)
+    return jnp.mean(jnp.sum(traj.reward, axis=0))
+
+
+def run_chunk(method: Method, eval_config: EvalConfig, state, sequence, start, chunk: int, eval_key,
+              seed_index=0):
+    """Learns tasks ``start … start + chunk − 1`` of ``sequence`` (a task pytree [num_tasks]) from ``state``.
+
+    Positions past the end of the sequence are skipped (a ``lax.cond`` on ``start``, which must not be
+    batched), so a sequence of any length runs through one compiled chunk program. ``eval_key`` seeds the
+    evaluation rollouts only: the method's own random stream is the same with or without evaluation, and with
+    any chunking. Returns (state, ChunkMetrics).
+    """
+    num_tasks = jax.tree.leaves(sequence)[0].shape[0]
+    learn = jax.jit(method.learn_task)
+    k = eval_config.backward_tasks
+
+    def task_at(i):
+        return jax.tree.map(lambda x: jax.lax.dynamic_index_in_dim(x, i, keepdims=False), sequence)
+
+    def do(state, i):
+        new_state, metrics = learn(state, task_at(i), (seed_index, i))
+        prev = i - 1 - jnp.arange(k)
+        keys = jax.vmap(lambda d: jax.random.fold_in(jax.random.fold_in(eval_key, i), d))(jnp.arange(k))
+        returns = jax.vmap(lambda j, key: _mean_return(method, new_state.params.policy, task_at(jnp.maximum(j, 0)),
+                                                       key))(prev, keys)
+        return new_state, ChunkMetrics(metrics, returns, prev >= 0, jnp.array(True))
+
+    def body(state, c):
+        i = start + c
+        shapes = jax.eval_shape(do, state, i)
+        skip = lambda s, _: (s, jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes[1]))  # noqa: E731
+        return jax.lax.cond(i < num_tasks, do, skip, state, i)
+
+    return jax.lax.scan(body, state, jnp.arange(chunk, dtype=jnp.int32))
+
+
+def heldout_adaptation(method: Method, eval_config: EvalConfig, state, heldout_tasks, rng):
+    """Meta-test: PPO from the state's policy on every held-out task for a fixed budget, no early stop.
+
+    Returns (mean_return, success_rate), each f32[num_heldout, heldout_iterations + 1]: entry 0 is the policy
+    as it is (zero-shot), entry n the policy after n PPO iterations. The state is not changed.
+    """
+    config = method.config.ppo
+    optimizer = ppo.make_optimizer(config)
+    params = state.params
+
+    def one(task, key):
+        out = ppo.rl_step(config, method.family, params, optimizer.init(params), task, key, stop_at_threshold=False,
+                          budget=eval_config.heldout_iterations + 1)
+        return out.metrics.mean_return, out.metrics.success_rate
+
+    n = jax.tree.leaves(heldout_tasks)[0].shape[0]
+    return jax.vmap(one)(heldout_tasks, jax.random.split(rng, n))

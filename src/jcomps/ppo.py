@@ -228,17 +228,23 @@ def ppo_update(config: PPOConfig, optimizer, params, opt_state, traj: acting.Tra
 
 
 ObserveFn = Callable[[Any, acting.Trajectory, jax.Array], Any]
+IterationHook = Callable[[Any, jax.Array, jax.Array, jax.Array], None]
 
 
 def rl_step(config: PPOConfig, family: Family, params: networks.ActorCriticParams, opt_state, task,
-            rng: jax.Array, observe: Optional[ObserveFn] = None, aux: Any = None) -> RLStepResult:
+            rng: jax.Array, observe: Optional[ObserveFn] = None, aux: Any = None,
+            on_iteration: Optional[IterationHook] = None, context: Any = (), stop_at_threshold: bool = True,
+            budget: Optional[int] = None) -> RLStepResult:
     """PPO on ``task`` until the success rate reaches ``family.success_threshold`` or the budget is spent.
 
     ``observe(aux, trajectory, iteration) -> aux``, if given, sees every iteration's batch (the experience
-    stores of CoMPS are built this way) and threads ``aux`` through the loop. Jittable; ``config`` and
-    ``family`` are static.
+    stores of CoMPS are built this way) and threads ``aux`` through the loop. ``on_iteration(context,
+    iteration, success_rate, mean_return)``, if given, is a host function called through ``jax.debug.callback``
+    after every iteration (progress reports); ``context`` is any pytree of arrays passed along (e.g. the seed
+    and task index). ``stop_at_threshold=False`` runs the whole budget (fixed-budget adaptation); ``budget``
+    overrides the config's. Jittable; ``config`` and ``family`` are static.
     """
-    budget = config.budget_for(family)
+    budget = config.budget_for(family) if budget is None else budget
     optimizer = make_optimizer(config)
     zeros = jnp.zeros((budget,), jnp.float32)
     metrics0 = IterationMetrics(zeros, zeros, zeros, zeros, zeros, zeros, zeros, jnp.zeros((budget,), bool))
@@ -253,7 +259,7 @@ def rl_step(config: PPOConfig, family: Family, params: networks.ActorCriticParam
         aux: Any
 
     def cond(c: Carry):
-        return (~c.solved) & (c.it < budget)
+        return ((~c.solved) | (not stop_at_threshold)) & (c.it < budget)
 
     def body(c: Carry):
         rng, k_roll, k_upd = jax.random.split(c.rng, 3)
@@ -261,6 +267,8 @@ def rl_step(config: PPOConfig, family: Family, params: networks.ActorCriticParam
         success_rate = family.success_rate(traj.success)
         mean_return = jnp.mean(jnp.sum(traj.reward, axis=0))
         solved = success_rate >= family.success_threshold
+        if on_iteration is not None:
+            jax.debug.callback(on_iteration, context, c.it + 1, success_rate, mean_return)
         rollout_finite = all_finite((traj.obs, traj.reward))
         aux = c.aux if observe is None else observe(c.aux, traj, c.it)
 
@@ -270,7 +278,8 @@ def rl_step(config: PPOConfig, family: Family, params: networks.ActorCriticParam
         def skip(_):
             return c.params, c.opt_state, jnp.zeros((4,), jnp.float32), jnp.float32(0.0)
 
-        params, opt_state, terms, bad = jax.lax.cond(solved | ~rollout_finite, skip, update, None)
+        no_update = (solved & stop_at_threshold) | ~rollout_finite
+        params, opt_state, terms, bad = jax.lax.cond(no_update, skip, update, None)
         bad = jnp.maximum(bad, 1.0 - rollout_finite.astype(jnp.float32))
         row = IterationMetrics(mean_return, success_rate, terms[0], terms[1], terms[2], terms[3], bad,
                                jnp.array(True))
@@ -279,4 +288,9 @@ def rl_step(config: PPOConfig, family: Family, params: networks.ActorCriticParam
 
     init = Carry(params, opt_state, rng, jnp.int32(0), jnp.array(False), metrics0, aux)
     out = jax.lax.while_loop(cond, body, init)
+    if not stop_at_threshold:  # iterations-to-success: the first iteration at or above the threshold
+        reached = out.metrics.success_rate >= family.success_threshold
+        first = jnp.argmax(reached).astype(jnp.int32) + 1
+        return RLStepResult(out.params, out.opt_state, out.metrics, jnp.where(jnp.any(reached), first, budget),
+                            jnp.any(reached), out.aux)
     return RLStepResult(out.params, out.opt_state, out.metrics, out.it, out.solved, out.aux)

@@ -22,14 +22,18 @@ def config_class(name: str):
     return REGISTRY[name][0]
 
 
-def make(name: str, family: Family, config=None) -> Method:
-    """Method ``name`` (one of ``METHODS``) on ``family`` with ``config`` (default: the paper's defaults)."""
+def make(name: str, family: Family, config=None, on_iteration=None) -> Method:
+    """Method ``name`` (one of ``METHODS``) on ``family`` with ``config`` (default: the paper's defaults).
+
+    ``on_iteration(context, iteration, success_rate, mean_return)``: optional host function called after every
+    RL iteration (see ``ppo.rl_step``), with the ``context`` passed to ``learn_task``.
+    """
     cls = config_class(name)
     if config is None:
         config = cls()
     if not isinstance(config, cls):
         raise TypeError(f"method {name!r} takes a {cls.__name__}, got {type(config).__name__}")
-    return REGISTRY[name][1](family, config)
+    return REGISTRY[name][1](family, config, on_iteration)
 
 
 __all__ = ["METHODS", "Method", "REGISTRY", "TaskMetrics", "config_class", "make"]

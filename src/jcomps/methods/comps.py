@@ -70,7 +70,7 @@ class CoMPSState(NamedTuple):
     task_index: jax.Array
 
 
-def make(family: Family, config: CoMPSConfig = CoMPSConfig(), name: str = "comps") -> Method:
+def make(family: Family, config: CoMPSConfig = CoMPSConfig(), on_iteration=None, name: str = "comps") -> Method:
     optimizer = ppo.make_optimizer(config.ppo)
     policy_opt, value_opt = meta.optimizers(config.meta)
     budget = config.ppo.budget_for(family)
@@ -91,12 +91,13 @@ def make(family: Family, config: CoMPSConfig = CoMPSConfig(), name: str = "comps
         skilled, recent = aux
         return buffers.skilled_update(skilled, traj), buffers.recent_add(recent, traj)
 
-    def learn_task(state: CoMPSState, task) -> tuple[CoMPSState, TaskMetrics]:
+    def learn_task(state: CoMPSState, task, context=()) -> tuple[CoMPSState, TaskMetrics]:
         rng, k_rl, k_off, k_meta = jax.random.split(state.rng, 4)
         opt_state = optimizer.init(state.params) if config.reset_optimizer else state.opt_state
         aux0 = (buffers.skilled_init(T, config.num_skilled, family.obs_size, family.action_size),
                 buffers.recent_init(capacity, T, B, family.obs_size, family.action_size))
-        out = ppo.rl_step(config.ppo, family, state.params, opt_state, task, k_rl, observe=observe, aux=aux0)
+        out = ppo.rl_step(config.ppo, family, state.params, opt_state, task, k_rl, observe=observe, aux=aux0,
+                          on_iteration=on_iteration, context=context)
         skilled, recent = out.aux
         offpolicy = buffers.sample_offpolicy(recent, config.num_offpolicy, k_off)
         stores = buffers.sequence_write(state.stores, state.task_index, skilled, offpolicy)
@@ -110,5 +111,5 @@ def make(family: Family, config: CoMPSConfig = CoMPSConfig(), name: str = "comps
     return Method(name, config, family, init, learn_task)
 
 
-def make_gmps_ppo(family: Family, config: GMPSPPOConfig = GMPSPPOConfig()) -> Method:
-    return make(family, config, name="gmps_ppo")
+def make_gmps_ppo(family: Family, config: GMPSPPOConfig = GMPSPPOConfig(), on_iteration=None) -> Method:
+    return make(family, config, on_iteration, name="gmps_ppo")

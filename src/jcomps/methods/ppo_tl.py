@@ -31,7 +31,7 @@ class PPOTLState(NamedTuple):
     task_index: jax.Array
 
 
-def make(family: Family, config: PPOTLConfig = PPOTLConfig()) -> Method:
+def make(family: Family, config: PPOTLConfig = PPOTLConfig(), on_iteration=None) -> Method:
     optimizer = ppo.make_optimizer(config.ppo)
 
     def init(rng: jax.Array) -> PPOTLState:
@@ -39,10 +39,11 @@ def make(family: Family, config: PPOTLConfig = PPOTLConfig()) -> Method:
         params = ppo.init_params(config.ppo, family, k)
         return PPOTLState(params, optimizer.init(params), rng, jax.numpy.int32(0))
 
-    def learn_task(state: PPOTLState, task) -> tuple[PPOTLState, TaskMetrics]:
+    def learn_task(state: PPOTLState, task, context=()) -> tuple[PPOTLState, TaskMetrics]:
         rng, k = jax.random.split(state.rng)
         opt_state = optimizer.init(state.params) if config.reset_optimizer else state.opt_state
-        out = ppo.rl_step(config.ppo, family, state.params, opt_state, task, k)
+        out = ppo.rl_step(config.ppo, family, state.params, opt_state, task, k, on_iteration=on_iteration,
+                          context=context)
         new_state = PPOTLState(out.params, out.opt_state, rng, state.task_index + 1)
         return new_state, TaskMetrics(out.iterations, out.solved, out.metrics)
 

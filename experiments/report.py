@@ -1,0 +1,29 @@
+"""Regenerate ``results.json``, the plots and ``significance.md`` of a run directory.
+
+    python experiments/report.py runs/point_goal-20261125-210000
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from jcomps import experiment, report
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("run_dir", help="a directory written by experiments/run_sequence.py")
+    args = parser.parse_args(argv)
+    try:
+        results = report.write(args.run_dir)
+    except experiment.RunError as err:
+        print(f"error: {err}", file=sys.stderr)
+        sys.exit(2)
+    for path in results["plots"]:
+        print(f"wrote {args.run_dir}/{path}")
+    print(f"wrote {args.run_dir}/results.json and {args.run_dir}/significance.md")
+
+
+if __name__ == "__main__":
+    main()

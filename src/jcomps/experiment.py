@@ -1,0 +1,469 @@
+"""Experiment runs: methods over a task sequence, seeds sharded over devices, chunked, checkpointed, resumable.
+
+A run directory holds:
+
+- ``run.json``: everything that defines the run (run options, evaluation options, every method's config); a
+  resume must match it.
+- ``checkpoints/<method>/<step>/``: Orbax checkpoints of the method's entire state (parameters, optimiser
+  states, experience stores, rng, counters) and the metrics so far, written after every chunk of tasks.
+- ``raw/<method>.npz``: all metrics of a method once its sequence is done (the input of ``jcomps.report``).
+- ``results.json``, ``plots/*.png``, ``significance.md``: written by ``jcomps.report`` at the end.
+
+Per method there is one compiled chunk program: ``vmap`` over the seeds of a device, ``shard_map`` over devices
+(the seed axis), a ``lax.scan`` over ``chunk_tasks`` tasks. The host loops over chunks and checkpoints between
+them; since every chunk runs through the same program from the restored state, a resumed run gives per-task
+results identical to an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import shutil
+import time
+from typing import Any, Callable, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import PartitionSpec as P
+
+from jcomps import continual, envs, methods
+from jcomps.ppo import check_field
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+    """What a run learns: the family, the sequence, the methods and the seeds."""
+
+    family: str = "point_goal"
+    """Task family (see ``jcomps.envs.FAMILIES``)."""
+    sequence: str = "non-stationary"
+    """``non-stationary`` (the paper's order) or ``stationary`` (the same list shuffled by seed)."""
+    methods: tuple[str, ...] = ("comps", "ppo_tl")
+    """Methods to run, one compiled program each."""
+    seeds: int = 3
+    """Number of seeds (a vmap axis, sharded over devices)."""
+    seed: int = 0
+    """The first seed; seeds are seed, seed + 1, ..."""
+    num_tasks: int = 6
+    """Length of the sequence (a prefix of the family's list, shuffled per seed if stationary)."""
+    chunk_tasks: int = 2
+    """Tasks per compiled chunk; a checkpoint is written after every chunk."""
+
+    def __post_init__(self):
+        check_field(self.family in envs.FAMILIES, "family", self.family, ", ".join(envs.FAMILIES))
+        check_field(self.sequence in envs.SEQUENCE_KINDS, "sequence", self.sequence, ", ".join(envs.SEQUENCE_KINDS))
+        check_field(len(self.methods) >= 1 and len(set(self.methods)) == len(self.methods), "methods", self.methods,
+                    "one or more distinct method names")
+        for name in self.methods:
+            check_field(name in methods.METHODS, "methods", name, ", ".join(methods.METHODS))
+        check_field(self.seeds >= 1, "seeds", self.seeds, "an integer >= 1")
+        check_field(self.seed >= 0, "seed", self.seed, "an integer >= 0")
+        check_field(self.num_tasks >= 1, "num_tasks", self.num_tasks, "an integer >= 1")
+        check_field(self.chunk_tasks >= 1, "chunk_tasks", self.chunk_tasks, "an integer >= 1")
+
+
+class RunError(ValueError):
+    """A run directory or its options cannot be used as asked (the runner turns it into exit code 2)."""
+
+
+def _jsonable(x):
+    if dataclasses.is_dataclass(x):
+        return {f.name: _jsonable(getattr(x, f.name)) for f in dataclasses.fields(x)}
+    if isinstance(x, (tuple, list)):
+        return [_jsonable(v) for v in x]
+    return x
+
+
+def describe(run: RunConfig, eval_config: continual.EvalConfig, method_configs: dict) -> dict:
+    """The JSON description of a run (``run.json``)."""
+    return {"run": _jsonable(run), "eval": _jsonable(eval_config),
+            "methods": {name: _jsonable(method_configs[name]) for name in run.methods}}
+
+
+def _differences(a, b, prefix="") -> list[str]:
+    if isinstance(a, dict) and isinstance(b, dict):
+        out = []
+        for key in sorted(set(a) | set(b)):
+            out += _differences(a.get(key), b.get(key), f"{prefix}{key}.")
+        return out
+    return [] if a == b else [f"{prefix[:-1]}: run has {a!r}, asked {b!r}"]
+
+
+def _write_json(path, data):
+    tmp = path + ".tmp"
+    with open(tmp, "w") as f:
+        json.dump(data, f, indent=1)
+    os.replace(tmp, path)
+
+
+def open_run_dir(out: str, description: dict, resume: bool) -> None:
+    """Creates ``out`` for a new run, or checks that it holds this very run when resuming."""
+    run_json = os.path.join(out, "run.json")
+    if resume:
+        if not os.path.isfile(run_json):
+            raise RunError(f"--resume: {out} holds no run (no run.json); start it without --resume")
+        with open(run_json) as f:
+            stored = json.load(f)
+        diff = _differences(stored, description)
+        if diff:
+            raise RunError(f"--resume: {out} was made with another config: " + "; ".join(diff[:8]))
+        return
+    if os.path.exists(run_json) or os.path.exists(os.path.join(out, "results.json")):
+        raise RunError(f"{out} already holds a run; choose another --out, or add --resume to continue it")
+    os.makedirs(out, exist_ok=True)
+    _write_json(run_json, description)
+
+
+def num_devices(seeds: int, available: Optional[int] = None) -> int:
+    """The largest device count that divides ``seeds`` (seeds are split evenly over devices)."""
+    available = available or jax.device_count()
+    return max(d for d in range(1, min(seeds, available) + 1) if seeds % d == 0)
+
+
+def _seed_keys(seeds: list[int], salt: int) -> jax.Array:
+    return jax.vmap(lambda s: jax.random.fold_in(jax.random.PRNGKey(s), salt))(jnp.asarray(seeds, jnp.uint32))
+
+
+class Progress:
+    """Host-side progress of one method: a status line at most every ``interval`` seconds, from the callbacks
+    of every RL iteration (method, task, iteration, success rate, elapsed, remaining)."""
+
+    def __init__(self, name: str, seeds: int, num_tasks: int, start_task: int, log: Callable[[str], None],
+                 interval: float = 10.0):
+        self.name, self.seeds, self.num_tasks, self.log, self.interval = name, seeds, num_tasks, log, interval
+        self.start = time.time()
+        self.start_task = start_task
+        self.last = 0.0
+        self.task = np.full(seeds, start_task, np.int64)
+        self.iteration = np.zeros(seeds, np.int64)
+        self.success = np.zeros(seeds)
+
+    def __call__(self, context, iteration, success_rate, mean_return):
+        del mean_return
+        seed, task = (int(x) for x in context)
+        self.task[seed], self.iteration[seed], self.success[seed] = task, int(iteration), float(success_rate)
+        now = time.time()
+        if now - self.last >= self.interval:
+            self.last = now
+            self.log(self.line())
+
+    def remaining(self) -> Optional[float]:
+        done = float(np.mean(self.task)) - self.start_task
+        if done <= 0:
+            return None
+        return (time.time() - self.start) * (self.num_tasks - float(np.mean(self.task))) / done
+
+    def line(self) -> str:
+        remaining = self.remaining()
+        lo, hi = int(self.task.min()) + 1, int(self.task.max()) + 1
+        tasks = f"{lo}" if lo == hi else f"{lo}-{hi}"
+        return (f"[{self.name}] task {tasks}/{self.num_tasks} iteration {int(self.iteration.max())} success "
+                f"{float(self.success.mean()):.2f} | elapsed {_clock(time.time() - self.start)} remaining "
+                f"{'?' if remaining is None else '~' + _clock(remaining)}")
+
+
+def _clock(seconds: float) -> str:
+    seconds = int(seconds)
+    return f"{seconds // 3600}h{seconds // 60 % 60:02d}m" if seconds >= 3600 else f"{seconds // 60}m{seconds % 60:02d}s"
+
+
+class MethodProgram:
+    """The compiled programs of one method: init, one chunk of tasks, held-out adaptation; seeds sharded."""
+
+    def __init__(self, method, eval_config: continual.EvalConfig, chunk: int, devices: int):
+        self.method, self.chunk = method, chunk
+        mesh = jax.make_mesh((devices,), ("seed",), devices=jax.devices()[:devices])
+        seed = P("seed")
+
+        def init(rngs):
+            return jax.vmap(method.init)(rngs)
+
+        def run_chunk(states, sequences, start, eval_keys, seed_index):
+            fn = lambda s, q, k, i: continual.run_chunk(method, eval_config, s, q, start, chunk, k, i)  # noqa: E731
+            return jax.vmap(fn)(states, sequences, eval_keys, seed_index)
+
+        def heldout(states, tasks, keys):
+            return jax.vmap(lambda s, k: continual.heldout_adaptation(method, eval_config, s, tasks, k))(states, keys)
+
+        shard = lambda f, specs: jax.jit(jax.shard_map(f, mesh=mesh, in_specs=specs, out_specs=seed,  # noqa: E731
+                                                       check_vma=False))
+        self.init = shard(init, (seed,))
+        self.run_chunk = shard(run_chunk, (seed, seed, P(), seed, seed))
+        self.heldout = shard(heldout, (seed, P(), seed))
+        self.sharding = jax.sharding.NamedSharding(mesh, seed)
+
+    def put(self, tree):
+        """Places host arrays with a leading seed axis on the devices, split along that axis."""
+        return jax.device_put(tree, self.sharding)
+
+
+# Compiled programs are kept per (method, family, config, evaluation, chunk, devices), so a resume or a second
+# run in the same process does not compile again; progress reaches the current run's Progress through _PROGRESS.
+_PROGRAMS: dict = {}
+_PROGRESS: dict = {}
+
+
+def _program(name, family_name, config, eval_config, chunk, devices) -> MethodProgram:
+    key = (name, family_name, config, eval_config, chunk, devices)
+    if key not in _PROGRAMS:
+        def on_iteration(context, iteration, success_rate, mean_return):
+            hook = _PROGRESS.get(name)
+            if hook is not None:
+                hook(context, iteration, success_rate, mean_return)
+
+        method = methods.make(name, envs.make(family_name), config, on_iteration=on_iteration)
+        _PROGRAMS[key] = MethodProgram(method, eval_config, chunk, devices)
+    return _PROGRAMS[key]
+
+
+def _flatten(tree) -> dict:
+    return {f"{i:05d}": np.asarray(x) for i, x in enumerate(jax.tree.leaves(tree))}
+
+
+def _unflatten(like, flat: dict):
+    leaves, treedef = jax.tree.flatten(like)
+    if len(flat) != len(leaves):
+        raise RunError(f"checkpoint holds {len(flat)} arrays, this method's state has {len(leaves)}")
+    out = []
+    for i, leaf in enumerate(leaves):
+        x = np.asarray(flat[f"{i:05d}"])
+        if x.shape != np.shape(leaf) or x.dtype != np.asarray(leaf).dtype:
+            raise RunError(f"checkpoint array {i} is {x.dtype}{list(x.shape)}, expected "
+                           f"{np.asarray(leaf).dtype}{list(np.shape(leaf))}")
+        out.append(x)
+    return jax.tree.unflatten(treedef, out)
+
+
+class Checkpoints:
+    """Orbax checkpoints of one method (atomic: Orbax writes to a temporary directory and renames)."""
+
+    def __init__(self, directory: str):
+        import orbax.checkpoint as ocp
+        self.ocp = ocp
+        self.directory = os.path.abspath(directory)
+        self._open()
+
+    def _open(self):
+        self.manager = self.ocp.CheckpointManager(
+            self.directory,
+            options=self.ocp.CheckpointManagerOptions(max_to_keep=2, create=True, enable_async_checkpointing=False))
+
+    def _set_aside(self, step: int) -> str:
+        """Moves an unreadable step out of the way (kept for inspection, never deleted)."""
+        dest = os.path.join(self.directory + "-unreadable", f"{step}-{time.strftime('%Y%m%d-%H%M%S')}")
+        os.makedirs(os.path.dirname(dest), exist_ok=True)
+        shutil.move(os.path.join(self.directory, str(step)), dest)
+        return dest
+
+    def save(self, step: int, tree: dict):
+        self.manager.save(step, args=self.ocp.args.StandardSave(tree), force=True)
+        self.manager.wait_until_finished()
+
+    def restore_latest(self, like: dict, log) -> Optional[tuple[int, dict]]:
+        """The newest readable checkpoint (an unreadable one is reported and the one before it is tried)."""
+        errors = []
+        for step in sorted(self.manager.all_steps(), reverse=True):
+            try:
+                target = jax.tree.map(np.asarray, like)
+                tree = self.manager.restore(step, args=self.ocp.args.StandardRestore(target))
+                tree = jax.tree.map(np.asarray, tree)
+                for key in like:
+                    _unflatten_check(like[key], tree[key])
+                if errors:
+                    self._open()
+                return step, tree
+            except Exception as err:  # noqa: BLE001 - any failure to read means this checkpoint is unusable
+                errors.append(f"step {step}: {type(err).__name__}: {str(err)[:300]}")
+                dest = self._set_aside(step)
+                log(f"warning: checkpoint step {step} in {self.directory} cannot be read ({errors[-1]}); moved to "
+                    f"{dest}")
+        if errors:
+            raise RunError("no readable checkpoint (unreadable ones were moved to "
+                           f"{self.directory}-unreadable): " + " | ".join(errors))
+        return None
+
+
+def _unflatten_check(like, got):
+    for key, value in like.items():
+        if key not in got or np.shape(got[key]) != np.shape(value):
+            raise RunError(f"checkpoint entry {key} is missing or has the wrong shape")
+
+
+def _zeros_like_struct(struct):
+    return jax.tree.map(lambda x: np.zeros(x.shape, x.dtype), struct)
+
+
+def run_method(out: str, name: str, run: RunConfig, eval_config: continual.EvalConfig, config, resume: bool,
+               log: Callable[[str], None] = print, tensorboard: bool = False,
+               stop_after_chunks: Optional[int] = None) -> Optional[dict]:
+    """Runs (or resumes) one method's sequence; returns its raw metrics (numpy) when the sequence is done.
+
+    ``stop_after_chunks`` (tests) returns None after that many chunks of this call, as if killed.
+    """
+    family = envs.make(run.family)
+    seeds = list(range(run.seed, run.seed + run.seeds))
+    devices = num_devices(run.seeds)
+    progress = Progress(name, run.seeds, run.num_tasks, 0, log)
+    program = _program(name, run.family, config, eval_config, min(run.chunk_tasks, run.num_tasks), devices)
+    _PROGRESS[name] = progress
+
+    values = np.stack([envs.sequence_values(family, run.sequence, s, run.num_tasks) for s in seeds])
+    sequences = jax.tree.map(lambda x: x.reshape((run.seeds, run.num_tasks) + x.shape[1:]),
+                             family.tasks(values.reshape(-1)))
+    sequences = program.put(sequences)
+    heldout_tasks = envs.held_out(family)
+    seed_index = program.put(np.arange(run.seeds, dtype=np.int32))
+    eval_keys = program.put(_seed_keys(seeds, 1))
+    num_chunks = math.ceil(run.num_tasks / program.chunk)
+
+    states = program.init(program.put(jax.vmap(jax.random.PRNGKey)(jnp.asarray(seeds))))
+    chunk_shapes = jax.eval_shape(program.run_chunk, states, sequences, jnp.int32(0), eval_keys, seed_index)[1]
+    heldout_shapes = jax.eval_shape(program.heldout, states, heldout_tasks, eval_keys)
+    # Host copies of every metric of the sequence, filled chunk by chunk: [seeds, num_tasks, ...].
+    per_task = jax.tree.map(lambda x: np.zeros((x.shape[0], run.num_tasks) + x.shape[2:], x.dtype), chunk_shapes)
+    heldout = jax.tree.map(lambda x: np.zeros((x.shape[0], num_chunks + 1) + x.shape[1:], x.dtype), heldout_shapes)
+    record = {"states": _flatten(states), "per_task": _flatten(per_task), "heldout": _flatten(heldout),
+              "counters": {"next_chunk": np.int64(0), "seconds": np.float64(0.0)}}
+
+    checkpoints = Checkpoints(os.path.join(out, "checkpoints", name))
+    next_chunk, seconds = 0, 0.0
+    if resume:
+        restored = checkpoints.restore_latest(record, log)
+        if restored is not None:
+            step, tree = restored
+            states = program.put(_unflatten(states, tree["states"]))
+            per_task = _unflatten(per_task, tree["per_task"])
+            heldout = _unflatten(heldout, tree["heldout"])
+            next_chunk, seconds = int(tree["counters"]["next_chunk"]), float(tree["counters"]["seconds"])
+            log(f"[{name}] resumed from checkpoint {step}: {min(next_chunk * program.chunk, run.num_tasks)}/"
+                f"{run.num_tasks} tasks done")
+    writer = _tensorboard(out, name) if tensorboard else None
+
+    log(f"[{name}] {run.family} {run.sequence}, {run.num_tasks} tasks, {run.seeds} seeds on {devices} device(s), "
+        f"budget {config.ppo.budget_for(family)}, chunks of {program.chunk}; compiling...")
+    start_time = time.time()
+    if next_chunk == 0:
+        out_h = program.heldout(states, heldout_tasks, program.put(_seed_keys(seeds, 1000)))
+        jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), 0), np.asarray(src)), heldout, out_h)
+    progress.task[:] = next_chunk * program.chunk
+    progress.start_task = next_chunk * program.chunk
+    chunks_run = 0
+    for c in range(next_chunk, num_chunks):
+        start = c * program.chunk
+        states, metrics = program.run_chunk(states, sequences, jnp.int32(start), eval_keys, seed_index)
+        metrics = jax.device_get(metrics)
+        stop = min(start + program.chunk, run.num_tasks)
+        jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), slice(start, stop)), src[:, :stop - start]),
+                     per_task, metrics)
+        out_h = program.heldout(states, heldout_tasks, program.put(_seed_keys(seeds, 1001 + c)))
+        jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), c + 1), np.asarray(src)), heldout, out_h)
+        _report_chunk(log, name, seeds, metrics, start, stop, run.num_tasks)
+        _check_finite(log, name, seeds, metrics.task.per_iteration.nonfinite, start)
+        if writer is not None:
+            _log_tensorboard(writer, per_task, start, stop)
+        elapsed = seconds + time.time() - start_time
+        checkpoints.save(c + 1, {"states": _flatten(states), "per_task": _flatten(per_task),
+                                 "heldout": _flatten(heldout),
+                                 "counters": {"next_chunk": np.int64(c + 1), "seconds": np.float64(elapsed)}})
+        chunks_run += 1
+        if stop_after_chunks is not None and chunks_run >= stop_after_chunks and c + 1 < num_chunks:
+            return None
+    raw = {"per_task": per_task, "heldout": heldout, "seconds": seconds + time.time() - start_time,
+           "devices": devices, "heldout_after_tasks": [min(c * program.chunk, run.num_tasks)
+                                                       for c in range(num_chunks + 1)]}
+    save_raw(out, name, raw)
+    log(f"[{name}] done in {_clock(raw['seconds'])}")
+    return raw
+
+
+def _report_chunk(log, name, seeds, metrics, start, stop, num_tasks):
+    its = np.asarray(metrics.task.iterations)[:, :stop - start]
+    for t in range(stop - start):
+        log(f"[{name}] task {start + t + 1}/{num_tasks} iterations-to-success per seed: {its[:, t].tolist()} "
+            f"(mean {its[:, t].mean():.1f})")
+
+
+def _check_finite(log, name, seeds, nonfinite, start):
+    bad = np.argwhere(np.asarray(nonfinite) > 0)
+    if len(bad):
+        s, t, it = bad[0]
+        log(f"error: [{name}] non-finite values (NaN/inf) at seed {seeds[s]}, task {start + t + 1}, iteration "
+            f"{it + 1}; those updates were skipped, not trained on")
+
+
+def _tensorboard(out, name):
+    try:
+        from tensorboardX import SummaryWriter
+    except ImportError as err:
+        raise RunError("--tensorboard needs tensorboardX: pip install -e '.[tensorboard]'") from err
+    return SummaryWriter(os.path.join(out, "tensorboard", name))
+
+
+def _log_tensorboard(writer, per_task, start, stop):
+    task = per_task.task
+    its = np.asarray(task.iterations)
+    for t in range(start, stop):
+        writer.add_scalar("iterations_to_success/mean", float(its[:, t].mean()), t + 1)
+        for s in range(its.shape[0]):
+            writer.add_scalar(f"iterations_to_success/seed{s}", float(its[s, t]), t + 1)
+            valid = np.asarray(task.per_iteration.valid[s, t])
+            offset = int(np.sum(np.asarray(task.per_iteration.valid[s, :t])))
+            for i in np.flatnonzero(valid):
+                writer.add_scalar(f"lifelong_return/seed{s}", float(task.per_iteration.mean_return[s, t, i]),
+                                  offset + i + 1)
+                writer.add_scalar(f"lifelong_success/seed{s}", float(task.per_iteration.success_rate[s, t, i]),
+                                  offset + i + 1)
+    writer.flush()
+
+
+def save_raw(out: str, name: str, raw: dict) -> None:
+    """Writes a finished method's metrics to ``raw/<name>.npz`` atomically."""
+    os.makedirs(os.path.join(out, "raw"), exist_ok=True)
+    arrays = {"seconds": np.float64(raw["seconds"]), "devices": np.int64(raw["devices"]),
+              "heldout_after_tasks": np.asarray(raw["heldout_after_tasks"], np.int64)}
+    per_task = raw["per_task"]
+    arrays.update({f"task.{k}": np.asarray(v) for k, v in per_task.task._asdict().items() if k != "per_iteration"})
+    arrays.update({f"iter.{k}": np.asarray(v) for k, v in per_task.task.per_iteration._asdict().items()})
+    arrays.update({"backward_returns": per_task.backward_returns, "backward_valid": per_task.backward_valid})
+    arrays.update({"heldout_return": raw["heldout"][0], "heldout_success": raw["heldout"][1]})
+    path = os.path.join(out, "raw", f"{name}.npz")
+    with open(path + ".tmp", "wb") as f:
+        np.savez(f, **arrays)
+    os.replace(path + ".tmp", path)
+
+
+def load_raw(out: str, name: str) -> Optional[dict]:
+    """A finished method's metrics, or None if it has not finished."""
+    path = os.path.join(out, "raw", f"{name}.npz")
+    if not os.path.isfile(path):
+        return None
+    try:
+        with np.load(path) as f:
+            return {k: f[k] for k in f.files}
+    except Exception as err:  # noqa: BLE001
+        raise RunError(f"{path} cannot be read ({type(err).__name__}: {err}); delete it to rerun {name}") from err
+
+
+def run(out: str, run_config: RunConfig, eval_config: continual.EvalConfig, method_configs: dict,
+        resume: bool = False, log: Callable[[str], None] = print, tensorboard: bool = False) -> dict:
+    """Runs every method of ``run_config`` into ``out`` (resuming where it stopped); returns raw metrics."""
+    open_run_dir(out, describe(run_config, eval_config, method_configs), resume)
+    raws = {}
+    for name in run_config.methods:
+        raw = load_raw(out, name) if resume else None
+        if raw is not None:
+            log(f"[{name}] already finished; skipping")
+        else:
+            run_method(out, name, run_config, eval_config, method_configs[name], resume, log, tensorboard)
+            raw = load_raw(out, name)
+        raws[name] = raw
+    return raws
+
+
+def remove_checkpoints(out: str) -> None:
+    """Deletes the checkpoints of a finished run (the raw metrics stay)."""
+    shutil.rmtree(os.path.join(out, "checkpoints"), ignore_errors=True)

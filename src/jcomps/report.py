@@ -1,0 +1,262 @@
+"""Results of a run directory: ``results.json``, the paper's plots and a significance table.
+
+Everything here is computed from ``run.json`` and ``raw/<method>.npz`` (written by ``jcomps.experiment``), so
+``python experiments/report.py RUN_DIR`` regenerates all of it at any time.
+
+Metrics (SPEC, "Metrics a user expects"):
+
+- iterations-to-success per task (seeds × tasks), its mean ± standard error over seeds;
+- the return and success-rate curves of every RL step, and the mean return per task;
+- the lifelong return curve (every iteration of the sequence, task after task);
+- backward transfer after task i: (c − a)/(b − a) with a, b, c averaged over the previous k tasks j: a the
+  return of task j's first iteration, b of its last, c of the current policy evaluated on task j;
+- held-out meta-test: mean return on the held-out tasks after a fixed number of PPO iterations, measured at the
+  start and after every chunk of tasks;
+- significance of CoMPS against each other method on the per-seed mean iterations-to-success: a two-sided
+  independent t-test, and the same test by bootstrap (30,000 resamples of the seeds under the null of equal
+  means, Efron & Tibshirani 16.4).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import warnings
+from typing import Optional
+
+import numpy as np
+
+from jcomps import experiment
+
+BOOTSTRAP_SAMPLES = 30_000
+
+
+def _mean_se(x: np.ndarray, axis=0):
+    """Mean and standard error over ``axis``, ignoring NaN (NaN where nothing is finite, SE 0 for one value)."""
+    x = np.asarray(x, np.float64)
+    n = np.sum(np.isfinite(x), axis=axis)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        mean = np.nanmean(x, axis=axis)
+        sd = np.nanstd(x, axis=axis, ddof=1)
+    return mean, np.where(n > 1, sd / np.sqrt(np.maximum(n, 1)), np.where(n == 1, 0.0, np.nan))
+
+
+def _curves(values: np.ndarray, valid: np.ndarray) -> list:
+    """seeds × tasks × (valid iterations) nested lists."""
+    return [[values[s, t][valid[s, t]].round(6).tolist() for t in range(values.shape[1])]
+            for s in range(values.shape[0])]
+
+
+def backward_transfer(raw: dict) -> np.ndarray:
+    """f64[seeds, tasks]: normalized reward on the previous k tasks after each task (NaN where undefined)."""
+    returns = raw["iter.mean_return"]
+    valid = raw["iter.valid"]
+    iterations = raw["task.iterations"]
+    seeds, tasks = iterations.shape
+    first = returns[:, :, 0]
+    last = np.take_along_axis(returns, np.maximum(valid.sum(-1) - 1, 0)[..., None], axis=2)[..., 0]
+    c, ok = raw["backward_returns"], raw["backward_valid"]
+    out = np.full((seeds, tasks), np.nan)
+    for s in range(seeds):
+        for i in range(tasks):
+            prev = [i - 1 - d for d in range(ok.shape[2]) if ok[s, i, d]]
+            if not prev:
+                continue
+            a, b = first[s, prev].mean(), last[s, prev].mean()
+            cc = c[s, i][ok[s, i]].mean()
+            if abs(b - a) > 1e-8:
+                out[s, i] = (cc - a) / (b - a)
+    return out
+
+
+def _t_statistic(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Student's two-sample t (pooled variance) along the last axis."""
+    nx, ny = x.shape[-1], y.shape[-1]
+    vx, vy = x.var(-1, ddof=1), y.var(-1, ddof=1)
+    pooled = ((nx - 1) * vx + (ny - 1) * vy) / (nx + ny - 2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return (x.mean(-1) - y.mean(-1)) / np.sqrt(pooled * (1 / nx + 1 / ny))
+
+
+def significance(x, y, samples: int = BOOTSTRAP_SAMPLES, seed: int = 0) -> dict:
+    """Two-sided independent t-test of x against y, analytic and by bootstrap under the null of equal means."""
+    from scipy import stats
+
+    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+    out = {"mean_a": float(x.mean()), "mean_b": float(y.mean()), "n_a": len(x), "n_b": len(y),
+           "t": None, "p_ttest": None, "p_bootstrap": None, "bootstrap_samples": samples}
+    if len(x) < 2 or len(y) < 2:
+        return out
+    t = float(_t_statistic(x, y))
+    if not np.isfinite(t):  # both groups constant
+        same = bool(x.mean() == y.mean())
+        out.update(t=None, p_ttest=1.0 if same else 0.0, p_bootstrap=1.0 if same else 0.0)
+        return out
+    out["t"] = t
+    out["p_ttest"] = float(stats.ttest_ind(x, y).pvalue)
+    pooled = np.concatenate([x, y]).mean()
+    x0, y0 = x - x.mean() + pooled, y - y.mean() + pooled
+    rng = np.random.default_rng(seed)
+    tb = _t_statistic(x0[rng.integers(0, len(x), (samples, len(x)))], y0[rng.integers(0, len(y), (samples, len(y)))])
+    tb = np.where(np.isfinite(tb), tb, 0.0)
+    out["p_bootstrap"] = float((np.sum(np.abs(tb) >= abs(t)) + 1) / (samples + 1))
+    return out
+
+
+def _json_float(x):
+    return None if x is None or not np.isfinite(x) else float(x)
+
+
+def summarize(description: dict, raws: dict) -> dict:
+    """The content of ``results.json``."""
+    run = description["run"]
+    seeds = list(range(run["seed"], run["seed"] + run["seeds"]))
+    results = {"description": description, "seeds": seeds, "methods": {}}
+    for name, raw in raws.items():
+        its = raw["task.iterations"]
+        valid = raw["iter.valid"]
+        ret, succ = raw["iter.mean_return"], raw["iter.success_rate"]
+        per_task_return = np.where(valid, ret, 0).sum(-1) / np.maximum(valid.sum(-1), 1)
+        mean, se = _mean_se(its)
+        bt = backward_transfer(raw)
+        h_ret = raw["heldout_return"].mean(axis=2)  # [seeds, points, iterations + 1], averaged over tasks
+        results["methods"][name] = {
+            "iterations_to_success": its.astype(int).tolist(),
+            "iterations_to_success_mean": mean.round(3).tolist(),
+            "iterations_to_success_se": se.round(3).tolist(),
+            "solved": raw["task.solved"].astype(bool).tolist(),
+            "mean_return_per_task": per_task_return.round(6).tolist(),
+            "return_curves": _curves(ret, valid),
+            "success_rate_curves": _curves(succ, valid),
+            "backward_transfer": [[_json_float(v) for v in row] for row in bt],
+            "heldout": {
+                "after_tasks": raw["heldout_after_tasks"].tolist(),
+                "zero_shot_return": h_ret[:, :, 0].round(6).tolist(),
+                "adapted_return": h_ret[:, :, -1].round(6).tolist(),
+                "adaptation_iterations": int(h_ret.shape[-1] - 1),
+            },
+            "nonfinite_iterations": int(np.sum(raw["iter.nonfinite"] > 0)),
+            "seconds": float(raw["seconds"]),
+            "devices": int(raw["devices"]),
+        }
+    if "comps" in raws:
+        base = raws["comps"]["task.iterations"].mean(axis=1)
+        results["significance"] = {
+            "statistic": "per-seed mean iterations-to-success over the sequence",
+            "against": {name: significance(base, raw["task.iterations"].mean(axis=1))
+                        for name, raw in raws.items() if name != "comps"}}
+    return results
+
+
+def _plots(results: dict, raws: dict, directory: str) -> list[str]:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    os.makedirs(directory, exist_ok=True)
+    written = []
+    title = "{family}, {sequence}, {seeds} seeds".format(**results["description"]["run"])
+
+    def save(fig, name):
+        path = os.path.join(directory, name)
+        fig.savefig(path + ".tmp.png", dpi=110, bbox_inches="tight")
+        os.replace(path + ".tmp.png", path)
+        plt.close(fig)
+        written.append(path)
+
+    def band(ax, x, values, label):
+        mean, se = _mean_se(values)
+        ax.plot(x, mean, marker="o", ms=3, label=label)
+        ax.fill_between(x, mean - se, mean + se, alpha=0.25)
+
+    methods_ = results["methods"]
+    tasks = np.arange(1, len(next(iter(methods_.values()))["iterations_to_success"][0]) + 1)
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for name, m in methods_.items():
+        band(ax, tasks, np.asarray(m["iterations_to_success"]), name)
+    ax.set(xlabel="task", ylabel="iterations to success", title=f"Iterations to success ({title})")
+    ax.legend()
+    save(fig, "iterations_to_success.png")
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for k, (name, raw) in enumerate(raws.items()):
+        valid, ret = raw["iter.valid"], raw["iter.mean_return"]
+        lines = [ret[s][valid[s]] for s in range(ret.shape[0])]
+        n = min(len(x) for x in lines)
+        for line in lines:
+            ax.plot(np.arange(1, len(line) + 1), line, color=f"C{k}", alpha=0.2, lw=0.7)
+        ax.plot(np.arange(1, n + 1), np.mean([x[:n] for x in lines], axis=0), color=f"C{k}", label=name)
+    ax.set(xlabel="iteration of the sequence", ylabel="mean return",
+           title="Lifelong return (thin: seeds; thick: mean while all seeds run)")
+    ax.legend()
+    save(fig, "lifelong_return.png")
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for name, m in methods_.items():
+        band(ax, tasks, np.asarray(m["mean_return_per_task"]), name)
+    ax.set(xlabel="task", ylabel="average return during the RL step", title="Per-task average return")
+    ax.legend()
+    save(fig, "per_task_return.png")
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for name, m in methods_.items():
+        bt = np.array([[np.nan if v is None else v for v in row] for row in m["backward_transfer"]], np.float64)
+        if np.any(np.isfinite(bt)):
+            band(ax, tasks, bt, name)
+    k = results["description"]["eval"]["backward_tasks"]
+    ax.axhline(1.0, color="gray", lw=0.8, ls="--")
+    ax.set(xlabel="task", ylabel="normalized reward (1: nothing forgotten)",
+           title=f"Backward transfer on the previous {k} tasks")
+    ax.legend()
+    save(fig, "backward_transfer.png")
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for k_, (name, m) in enumerate(methods_.items()):
+        h = m["heldout"]
+        mean, se = _mean_se(np.asarray(h["adapted_return"]))
+        ax.errorbar(h["after_tasks"], mean, yerr=se, marker="o", ms=3, color=f"C{k_}",
+                    label=f"{name} after {h['adaptation_iterations']} iterations")
+        ax.plot(h["after_tasks"], np.mean(h["zero_shot_return"], axis=0), ls=":", color=f"C{k_}",
+                label=f"{name} zero-shot")
+    ax.set(xlabel="tasks learnt", ylabel="mean return on held-out tasks", title="Held-out meta-test")
+    ax.legend(fontsize=8)
+    save(fig, "heldout_meta_test.png")
+    return written
+
+
+def significance_table(results: dict) -> str:
+    """Markdown table of CoMPS against each other method."""
+    sig = results.get("significance")
+    if not sig:
+        return "No significance table: the run has no `comps` method to compare against.\n"
+    fmt = lambda v: "n/a" if v is None else f"{v:.4g}"  # noqa: E731
+    lines = [f"Statistic: {sig['statistic']}; two-sided independent t-test, bootstrap of "
+             f"{BOOTSTRAP_SAMPLES:,} resamples.", "",
+             "| CoMPS vs | CoMPS mean | other mean | t | p (t-test) | p (bootstrap) |", "|---|---|---|---|---|---|"]
+    for name, s in sig["against"].items():
+        lines.append(f"| {name} | {s['mean_a']:.2f} | {s['mean_b']:.2f} | {fmt(s['t'])} | {fmt(s['p_ttest'])} | "
+                     f"{fmt(s['p_bootstrap'])} |")
+    return "\n".join(lines) + "\n"
+
+
+def write(out: str) -> Optional[dict]:
+    """(Re)writes ``results.json``, the plots and ``significance.md`` of run directory ``out``."""
+    run_json = os.path.join(out, "run.json")
+    if not os.path.isfile(run_json):
+        raise experiment.RunError(f"{out} is not a run directory (no run.json)")
+    with open(run_json) as f:
+        description = json.load(f)
+    raws = {}
+    for name in description["run"]["methods"]:
+        raw = experiment.load_raw(out, name)
+        if raw is None:
+            raise experiment.RunError(f"{out}: method {name} has not finished; continue the run with --resume")
+        raws[name] = raw
+    results = summarize(description, raws)
+    results["plots"] = [os.path.relpath(p, out) for p in _plots(results, raws, os.path.join(out, "plots"))]
+    experiment._write_json(os.path.join(out, "results.json"), results)
+    with open(os.path.join(out, "significance.md"), "w") as f:
+        f.write(significance_table(results))
+    return results

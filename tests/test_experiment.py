@@ -1,0 +1,215 @@
+"""Tests of the experiment runner: resume equality, the results schema, checkpoints and every CLI error path."""
+
+import importlib.util
+import json
+import os
+import pathlib
+import re
+import shutil
+
+import numpy as np
+import pytest
+
+from jcomps import continual, experiment, report
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+TINY = ["--budget", "3", "--num-trajectories", "2", "--hidden-sizes", "8", "--num-updates", "1",
+        "--minibatch-size", "16", "--num-meta-steps", "1", "--num-outer-steps", "2", "--inner-trajectories", "2",
+        "--skilled-trajectories", "2", "--num-skilled", "2", "--num-offpolicy", "4", "--heldout-iterations", "1",
+        "--backward-tasks", "2"]
+RUN = ["--methods", "comps", "ppo_tl", "--num-tasks", "3", "--seeds", "2", "--chunk-tasks", "1"]
+
+
+def _runner():
+    spec = importlib.util.spec_from_file_location("run_sequence", ROOT / "experiments" / "run_sequence.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def runner():
+    return _runner()
+
+
+@pytest.fixture(scope="module")
+def full_run(runner, tmp_path_factory):
+    """An uninterrupted run (compiles the programs that the other tests reuse)."""
+    out = tmp_path_factory.mktemp("runs") / "full"
+    runner.main(TINY + RUN + ["--out", str(out)])
+    return out
+
+
+def _raw(out, name):
+    with np.load(out / "raw" / f"{name}.npz") as f:
+        return {k: f[k] for k in f.files if k != "seconds"}
+
+
+def test_results_schema(full_run):
+    results = json.loads((full_run / "results.json").read_text())
+    assert results["seeds"] == [0, 1]
+    assert results["description"]["run"]["methods"] == ["comps", "ppo_tl"]
+    for name in ("comps", "ppo_tl"):
+        m = results["methods"][name]
+        its = m["iterations_to_success"]
+        assert len(its) == 2 and all(len(row) == 3 for row in its)
+        assert all(isinstance(i, int) and 1 <= i <= 3 for row in its for i in row)
+        assert len(m["iterations_to_success_mean"]) == 3 and len(m["iterations_to_success_se"]) == 3
+        assert np.asarray(m["mean_return_per_task"]).shape == (2, 3)
+        for curves in (m["return_curves"], m["success_rate_curves"]):
+            assert [[len(c) for c in row] for row in curves] == its  # one entry per iteration that ran
+        bt = m["backward_transfer"]
+        assert np.asarray(bt, dtype=object).shape == (2, 3) and bt[0][0] is None  # no previous task at task 1
+        h = m["heldout"]
+        assert h["after_tasks"] == [0, 1, 2, 3] and h["adaptation_iterations"] == 1
+        assert np.asarray(h["adapted_return"]).shape == (2, 4)
+        assert m["devices"] == 2 and m["nonfinite_iterations"] == 0
+    sig = results["significance"]["against"]["ppo_tl"]
+    assert sig["bootstrap_samples"] == 30_000 and set(sig) >= {"p_ttest", "p_bootstrap", "t"}
+    for plot in ("iterations_to_success", "lifelong_return", "per_task_return", "backward_transfer",
+                 "heldout_meta_test"):
+        assert (full_run / "plots" / f"{plot}.png").stat().st_size > 1000
+    assert (full_run / "significance.md").read_text().startswith("Statistic")
+
+
+def test_killed_and_resumed_run_equals_the_uninterrupted_one(runner, full_run, tmp_path):
+    out = tmp_path / "killed"
+    args = runner.parse_args(TINY + RUN + ["--out", str(out)])
+    experiment.open_run_dir(str(out), experiment.describe(args.run, args.eval, args.configs), resume=False)
+    # "Kill" comps after its first chunk: its checkpoint 1 exists, nothing else.
+    assert experiment.run_method(str(out), "comps", args.run, args.eval, args.configs["comps"], resume=False,
+                                 log=lambda _: None, stop_after_chunks=1) is None
+    assert sorted(os.listdir(out / "checkpoints" / "comps")) == ["1"]
+    runner.main(["--out", str(out), "--resume"])
+    for name in ("comps", "ppo_tl"):
+        a, b = _raw(full_run, name), _raw(out, name)
+        assert a.keys() == b.keys()
+        for key in a:
+            np.testing.assert_array_equal(a[key], b[key], err_msg=f"{name} {key}")
+
+
+def test_unreadable_checkpoint_falls_back_to_the_one_before(runner, full_run, tmp_path):
+    out = tmp_path / "corrupt"
+    args = runner.parse_args(TINY + RUN + ["--out", str(out)])
+    experiment.open_run_dir(str(out), experiment.describe(args.run, args.eval, args.configs), resume=False)
+    experiment.run_method(str(out), "ppo_tl", args.run, args.eval, args.configs["ppo_tl"], resume=False,
+                          log=lambda _: None, stop_after_chunks=2)
+    for path in (out / "checkpoints" / "ppo_tl" / "2").rglob("*"):
+        if path.is_file():
+            path.write_bytes(b"garbage")
+    logs = []
+    experiment.run_method(str(out), "ppo_tl", args.run, args.eval, args.configs["ppo_tl"], resume=True,
+                          log=logs.append)
+    assert any("cannot be read" in line for line in logs) and any("resumed from checkpoint 1" in line for line in logs)
+    a, b = _raw(full_run, "ppo_tl"), _raw(out, "ppo_tl")
+    for key in a:
+        np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+
+
+def test_no_readable_checkpoint_is_a_clear_error(runner, tmp_path):
+    out = tmp_path / "broken"
+    args = runner.parse_args(TINY + RUN + ["--out", str(out)])
+    experiment.open_run_dir(str(out), experiment.describe(args.run, args.eval, args.configs), resume=False)
+    step = out / "checkpoints" / "ppo_tl" / "1"
+    step.mkdir(parents=True)
+    (step / "junk").write_text("not a checkpoint")
+    with pytest.raises(SystemExit) as info:
+        runner.main(["--out", str(out), "--resume", "--methods", "ppo_tl", "comps"])
+    assert info.value.code == 2
+
+
+def test_report_regenerates_the_results(full_run, tmp_path):
+    copy = tmp_path / "copy"
+    shutil.copytree(full_run, copy, ignore=shutil.ignore_patterns("checkpoints"))
+    (copy / "results.json").unlink()
+    shutil.rmtree(copy / "plots")
+    report.write(str(copy))
+    a = json.loads((full_run / "results.json").read_text())
+    b = json.loads((copy / "results.json").read_text())
+    assert a == b and (copy / "plots" / "iterations_to_success.png").exists()
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["--methods", "maml"], "methods='maml'; allowed: ppo_tl, comps, gmps_ppo"),
+    (["--family", "humanoid"], "family='humanoid'; allowed:"),
+    (["--budget", "0"], "budget=0"),
+    (["--budget", "-3"], "budget=-3"),
+    (["--learning-rate", "abc"], "invalid"),
+    (["--seeds", "0"], "seeds=0"),
+    (["--chunk-tasks", "0"], "chunk_tasks=0"),
+    (["--num-tasks", "41"], re.escape("--num-tasks must be in [1, 40]")),
+    (["--sequence", "shuffled"], "sequence='shuffled'"),
+    (["--methods", "comps", "--num-tasks", "5", "--max-tasks", "3"], "--max-tasks 3 is smaller than --num-tasks 5"),
+    (["--methods", "comps", "--inner-learning-rate", "0"], "inner_learning_rate=0.0"),
+    (["--backward-tasks", "-1"], "backward_tasks=-1"),
+    (["--devices", "0"], "--devices must be >= 1"),
+    (["--resume"], "--resume needs --out"),
+])
+def test_bad_options_exit_2_with_a_message(runner, argv, message, capsys):
+    extra = [] if "--resume" in argv else ["--out", "/nonexistent/x"]
+    with pytest.raises(SystemExit) as info:
+        runner.parse_args(argv + extra)
+    assert info.value.code == 2
+    assert re.search(message, capsys.readouterr().err)
+
+
+def test_run_directory_errors_exit_2_and_keep_earlier_results(runner, full_run, tmp_path, capsys):
+    before = (full_run / "results.json").read_text()
+    # An output directory that holds another run.
+    with pytest.raises(SystemExit) as info:
+        runner.main(TINY + RUN + ["--out", str(full_run)])
+    assert info.value.code == 2 and "already holds a run" in capsys.readouterr().err
+    # --resume with another config names the difference.
+    with pytest.raises(SystemExit) as info:
+        runner.main(["--out", str(full_run), "--resume", "--learning-rate", "0.01"])
+    assert info.value.code == 2 and "learning_rate" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as info:
+        runner.main(["--out", str(full_run), "--resume", "--seeds", "3"])
+    assert info.value.code == 2 and "seeds" in capsys.readouterr().err
+    # --resume of a directory that does not exist.
+    with pytest.raises(SystemExit) as info:
+        runner.main(["--out", str(tmp_path / "missing"), "--resume"])
+    assert info.value.code == 2 and "holds no run" in capsys.readouterr().err
+    assert (full_run / "results.json").read_text() == before
+
+
+def test_resume_of_a_finished_run_rewrites_nothing_it_has(runner, full_run, capsys):
+    before = _raw(full_run, "comps")
+    runner.main(["--out", str(full_run), "--resume"])
+    assert "already finished" in capsys.readouterr().out
+    after = _raw(full_run, "comps")
+    for key in before:
+        np.testing.assert_array_equal(before[key], after[key])
+
+
+def test_significance_matches_the_t_test_and_detects_equal_groups():
+    rng = np.random.default_rng(0)
+    x, y = rng.normal(0.0, 1.0, 8), rng.normal(3.0, 1.0, 8)
+    s = report.significance(x, y, samples=4000)
+    assert s["p_ttest"] < 0.05 and abs(s["p_bootstrap"] - s["p_ttest"]) < 0.05
+    same = report.significance(x, x + 1e-12, samples=2000)
+    assert same["p_ttest"] > 0.9 and same["p_bootstrap"] > 0.9
+
+
+def test_backward_transfer_formula():
+    # One seed, 3 tasks, budget 2: task j's first and last returns a_j, b_j; after task 2 the policy scores c.
+    ret = np.array([[[0.0, 10.0], [2.0, 6.0], [0.0, 0.0]]])
+    valid = np.array([[[True, True], [True, True], [True, False]]])
+    raw = {"iter.mean_return": ret, "iter.valid": valid, "task.iterations": np.array([[2, 2, 1]]),
+           "backward_returns": np.array([[[0.0, 0.0], [5.0, 0.0], [4.0, 5.0]]]),
+           "backward_valid": np.array([[[False, False], [True, False], [True, True]]])}
+    bt = report.backward_transfer(raw)
+    assert np.isnan(bt[0, 0])
+    assert bt[0, 1] == pytest.approx((5.0 - 0.0) / (10.0 - 0.0))
+    # After task 3: previous tasks 2 (d=0, c=4) and 1 (d=1, c=5): a = (2+0)/2, b = (6+10)/2, c = 4.5.
+    assert bt[0, 2] == pytest.approx((4.5 - 1.0) / (8.0 - 1.0))
+
+
+def test_eval_config_rejects_bad_values():
+    with pytest.raises(ValueError, match="heldout_iterations"):
+        continual.EvalConfig(heldout_iterations=-1)
+
+
+def test_num_devices_divides_the_seeds():
+    assert experiment.num_devices(4, 2) == 2 and experiment.num_devices(3, 2) == 1 and experiment.num_devices(1, 8) == 1
+    assert experiment.num_devices(6, 4) == 3
