@@ -20,7 +20,7 @@ import sys
 
 def _set_host_devices(argv) -> None:
     """``--devices N`` must reach XLA before JAX is imported (it sets the CPU device count)."""
-    count = str(min(os.cpu_count() or 1, 8))
+    count = "1"
     for i, arg in enumerate(argv):
         if arg == "--devices" and i + 1 < len(argv):
             count = argv[i + 1]
@@ -50,8 +50,9 @@ def parse_args(argv=None):
     parser.add_argument("--out", default=None, help="run directory (default: runs/<family>-<time>)")
     parser.add_argument("--resume", action="store_true",
                         help="continue the run in --out from its last checkpoint (options must match it)")
-    parser.add_argument("--devices", type=int, default=min(os.cpu_count() or 1, 8),
-                        help="CPU host devices to shard seeds over (the seed count is split evenly)")
+    parser.add_argument("--devices", type=int, default=1,
+                        help="CPU host devices to shard seeds over (the seed count is split evenly). Default 1: "
+                             "with jax 0.10.2, programs on 2 host devices sometimes hang in XLA:CPU (docs/design.md)")
     parser.add_argument("--tensorboard", action="store_true", help="also write TensorBoard logs (tensorboardX)")
     cli.add_config_args(parser, [experiment.RunConfig, continual.EvalConfig])
     cli.add_config_args(parser, [methods.config_class(m) for m in methods.METHODS])

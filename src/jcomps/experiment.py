@@ -191,7 +191,12 @@ class MethodProgram:
 
         shard = lambda f, specs: jax.jit(jax.shard_map(f, mesh=mesh, in_specs=specs, out_specs=seed,  # noqa: E731
                                                        check_vma=False))
-        self.init = shard(init, (seed,))
+        # Initialisation runs on one device and is then split over the devices: the orthogonal initialiser's QR
+        # (a LAPACK call) inside a sharded program with more than one seed per device hangs XLA:CPU (seen with
+        # jax 0.10.2 on 2 host devices), and initialisation is cheap anyway.
+        init_one_device = jax.jit(init)
+        self.init = lambda rngs: self.put(jax.device_get(init_one_device(jax.device_put(jax.device_get(rngs),
+                                                                                        jax.devices()[0]))))
         self.run_chunk = shard(run_chunk, (seed, seed, P(), seed, seed))
         self.heldout = shard(heldout, (seed, P(), seed))
         self.sharding = jax.sharding.NamedSharding(mesh, seed)
@@ -320,7 +325,7 @@ def run_method(out: str, name: str, run: RunConfig, eval_config: continual.EvalC
     eval_keys = program.put(_seed_keys(seeds, 1))
     num_chunks = math.ceil(run.num_tasks / program.chunk)
 
-    states = program.init(program.put(jax.vmap(jax.random.PRNGKey)(jnp.asarray(seeds))))
+    states = program.init(jax.vmap(jax.random.PRNGKey)(jnp.asarray(seeds)))
     chunk_shapes = jax.eval_shape(program.run_chunk, states, sequences, jnp.int32(0), eval_keys, seed_index)[1]
     heldout_shapes = jax.eval_shape(program.heldout, states, heldout_tasks, eval_keys)
     # Host copies of every metric of the sequence, filled chunk by chunk: [seeds, num_tasks, ...].
