@@ -17,15 +17,13 @@ import subprocess
 import sys
 
 CHILD = r"""
-import json, sys, time
+import dataclasses, json, sys, time
 import jax, jax.numpy as jnp, numpy as np
 from jcomps import continual, envs, experiment, methods
 a = json.loads(sys.argv[1])
 family = envs.make(a["family"])
-cls = methods.config_class(a["method"])
-config = cls()
-config = config.__class__(**{**config.__dict__, "ppo": config.ppo.__class__(**{**config.ppo.__dict__,
-                                                                             "budget": a["budget"]})})
+config = methods.config_class(a["method"])()
+config = dataclasses.replace(config, ppo=dataclasses.replace(config.ppo, budget=a["budget"]))
 eval_config = continual.EvalConfig(backward_tasks=0, heldout_iterations=0)
 devices = experiment.num_devices(a["seeds"])
 program = experiment._program(a["method"], a["family"], config, eval_config, a["tasks"], devices)

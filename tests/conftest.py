@@ -4,11 +4,23 @@ Hypothesis: no deadline (the first example of a property pays for JAX's op compi
 few examples, so the suite stays fast on a 2-core CPU. ``HYPOTHESIS_PROFILE=thorough`` runs many more.
 """
 
+import importlib.util
 import os
+import pathlib
 
-
+import pytest
 from hypothesis import settings
 
 settings.register_profile("fast", deadline=None, max_examples=25)
 settings.register_profile("thorough", deadline=None, max_examples=500)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "fast"))
+
+
+@pytest.fixture(scope="session")
+def runner():
+    """``experiments/run_sequence.py`` loaded as a module (its ``parse_args`` and ``main``)."""
+    path = pathlib.Path(__file__).resolve().parents[1] / "experiments" / "run_sequence.py"
+    spec = importlib.util.spec_from_file_location("run_sequence", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

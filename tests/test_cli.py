@@ -1,26 +1,11 @@
 """Tests of the config-derived command line and the runner's entry point."""
 
-import importlib.util
 import pathlib
-
-import pytest
 
 from jcomps import cli, methods, ppo
 from jcomps.methods import ppo_tl
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-
-
-def _runner():
-    spec = importlib.util.spec_from_file_location("run_sequence", ROOT / "experiments" / "run_sequence.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-@pytest.fixture(scope="module")
-def runner():
-    return _runner()
 
 
 def test_every_config_field_is_an_option(runner):

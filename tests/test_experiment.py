@@ -1,9 +1,7 @@
 """Tests of the experiment runner: resume equality, the results schema, checkpoints and every CLI error path."""
 
-import importlib.util
 import json
 import os
-import pathlib
 import re
 import shutil
 
@@ -12,24 +10,11 @@ import pytest
 
 from jcomps import continual, experiment, report
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
 TINY = ["--budget", "3", "--num-trajectories", "2", "--hidden-sizes", "8", "--num-updates", "1",
         "--minibatch-size", "16", "--num-meta-steps", "1", "--num-outer-steps", "2", "--inner-trajectories", "2",
         "--skilled-trajectories", "2", "--num-skilled", "2", "--num-offpolicy", "4", "--heldout-iterations", "1",
         "--backward-tasks", "2"]
 RUN = ["--methods", "comps", "ppo_tl", "--num-tasks", "3", "--seeds", "2", "--chunk-tasks", "1"]
-
-
-def _runner():
-    spec = importlib.util.spec_from_file_location("run_sequence", ROOT / "experiments" / "run_sequence.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-@pytest.fixture(scope="module")
-def runner():
-    return _runner()
 
 
 @pytest.fixture(scope="module")

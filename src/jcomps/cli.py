@@ -91,11 +91,6 @@ def build_config(cls, args: argparse.Namespace):
     return cls(**kwargs)
 
 
-def explicit_fields(cls, args: argparse.Namespace) -> set[str]:
-    """Leaf field names of ``cls`` given on the command line."""
-    return {name for name, *_ in flat_fields(cls) if getattr(args, f"cfg_{name}", None) is not None}
-
-
 def config_from_dict(cls, data: dict, args: Optional[argparse.Namespace] = None):
     """An instance of ``cls`` from its ``dataclasses.asdict``-like ``data`` (lists become tuples), with any
     options given on the command line in ``args`` put over it."""

@@ -80,13 +80,13 @@ class ChunkMetrics(NamedTuple):
       backward_returns: f32[chunk, backward_tasks], mean episode return of the policy after task i on task
         i − 1 − d (d = 0 … backward_tasks − 1), with ``num_trajectories`` fresh episodes.
       backward_valid: bool[chunk, backward_tasks], False where i − 1 − d < 0 or the position is past the end.
-      active: bool[chunk], False for positions past the end of the sequence (their metrics are zeros).
+
+    Positions past the end of the sequence report zeros.
     """
 
     task: TaskMetrics
     backward_returns: jax.Array
     backward_valid: jax.Array
-    active: jax.Array
 
 
 def _mean_return(method: Method, policy, task, rng):
@@ -116,7 +116,7 @@ def run_chunk(method: Method, eval_config: EvalConfig, state, sequence, start, c
         keys = jax.vmap(lambda d: jax.random.fold_in(jax.random.fold_in(eval_key, i), d))(jnp.arange(k))
         returns = jax.vmap(lambda j, key: _mean_return(method, new_state.params.policy, task_at(jnp.maximum(j, 0)),
                                                        key))(prev, keys)
-        return new_state, ChunkMetrics(metrics, returns, prev >= 0, jnp.array(True))
+        return new_state, ChunkMetrics(metrics, returns, prev >= 0)
 
     def body(state, c):
         i = start + c

@@ -23,7 +23,7 @@ import math
 import os
 import shutil
 import time
-from typing import Any, Callable, Optional
+from typing import Callable, Optional
 
 import jax
 import jax.numpy as jnp
@@ -230,17 +230,15 @@ def _flatten(tree) -> dict:
 
 
 def _unflatten(like, flat: dict):
+    """The inverse of ``_flatten`` (``flat`` checked against ``like`` by ``Checkpoints.restore_latest``)."""
     leaves, treedef = jax.tree.flatten(like)
-    if len(flat) != len(leaves):
-        raise RunError(f"checkpoint holds {len(flat)} arrays, this method's state has {len(leaves)}")
-    out = []
-    for i, leaf in enumerate(leaves):
-        x = np.asarray(flat[f"{i:05d}"])
-        if x.shape != np.shape(leaf) or x.dtype != np.asarray(leaf).dtype:
-            raise RunError(f"checkpoint array {i} is {x.dtype}{list(x.shape)}, expected "
-                           f"{np.asarray(leaf).dtype}{list(np.shape(leaf))}")
-        out.append(x)
-    return jax.tree.unflatten(treedef, out)
+    return jax.tree.unflatten(treedef, [flat[f"{i:05d}"] for i in range(len(leaves))])
+
+
+def _record(states, per_task, heldout, next_chunk: int, seconds: float) -> dict:
+    """What a checkpoint holds: flat arrays of the states and the metrics so far, and the counters."""
+    return {"states": _flatten(states), "per_task": _flatten(per_task), "heldout": _flatten(heldout),
+            "counters": {"next_chunk": np.int64(next_chunk), "seconds": np.float64(seconds)}}
 
 
 class Checkpoints:
@@ -276,8 +274,7 @@ class Checkpoints:
                 target = jax.tree.map(np.asarray, like)
                 tree = self.manager.restore(step, args=self.ocp.args.StandardRestore(target))
                 tree = jax.tree.map(np.asarray, tree)
-                for key in like:
-                    _unflatten_check(like[key], tree[key])
+                _check_like(target, tree)
                 if errors:
                     self._open()
                 return step, tree
@@ -292,14 +289,17 @@ class Checkpoints:
         return None
 
 
-def _unflatten_check(like, got):
-    for key, value in like.items():
-        if key not in got or np.shape(got[key]) != np.shape(value):
-            raise RunError(f"checkpoint entry {key} is missing or has the wrong shape")
-
-
-def _zeros_like_struct(struct):
-    return jax.tree.map(lambda x: np.zeros(x.shape, x.dtype), struct)
+def _check_like(like: dict, got: dict):
+    """Raises RunError unless ``got`` has the structure, shapes and dtypes of ``like``."""
+    if jax.tree.structure(like) != jax.tree.structure(got):
+        raise RunError("checkpoint entries differ from this method's state")
+    for path, a in jax.tree_util.tree_leaves_with_path(like):
+        b = got
+        for key in path:
+            b = b[key.key]
+        if a.shape != b.shape or a.dtype != b.dtype:
+            raise RunError(f"checkpoint entry {jax.tree_util.keystr(path)} is {b.dtype}{list(b.shape)}, expected "
+                           f"{a.dtype}{list(a.shape)}")
 
 
 def run_method(out: str, name: str, run: RunConfig, eval_config: continual.EvalConfig, config, resume: bool,
@@ -312,9 +312,7 @@ def run_method(out: str, name: str, run: RunConfig, eval_config: continual.EvalC
     family = envs.make(run.family)
     seeds = list(range(run.seed, run.seed + run.seeds))
     devices = num_devices(run.seeds)
-    progress = Progress(name, run.seeds, run.num_tasks, 0, log)
     program = _program(name, run.family, config, eval_config, min(run.chunk_tasks, run.num_tasks), devices)
-    _PROGRESS[name] = progress
 
     values = np.stack([envs.sequence_values(family, run.sequence, s, run.num_tasks) for s in seeds])
     sequences = jax.tree.map(lambda x: x.reshape((run.seeds, run.num_tasks) + x.shape[1:]),
@@ -331,13 +329,11 @@ def run_method(out: str, name: str, run: RunConfig, eval_config: continual.EvalC
     # Host copies of every metric of the sequence, filled chunk by chunk: [seeds, num_tasks, ...].
     per_task = jax.tree.map(lambda x: np.zeros((x.shape[0], run.num_tasks) + x.shape[2:], x.dtype), chunk_shapes)
     heldout = jax.tree.map(lambda x: np.zeros((x.shape[0], num_chunks + 1) + x.shape[1:], x.dtype), heldout_shapes)
-    record = {"states": _flatten(states), "per_task": _flatten(per_task), "heldout": _flatten(heldout),
-              "counters": {"next_chunk": np.int64(0), "seconds": np.float64(0.0)}}
 
     checkpoints = Checkpoints(os.path.join(out, "checkpoints", name))
     next_chunk, seconds = 0, 0.0
     if resume:
-        restored = checkpoints.restore_latest(record, log)
+        restored = checkpoints.restore_latest(_record(states, per_task, heldout, 0, 0.0), log)
         if restored is not None:
             step, tree = restored
             states = program.put(_unflatten(states, tree["states"]))
@@ -354,8 +350,7 @@ def run_method(out: str, name: str, run: RunConfig, eval_config: continual.EvalC
     if next_chunk == 0:
         out_h = program.heldout(states, heldout_tasks, program.put(_seed_keys(seeds, 1000)))
         jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), 0), np.asarray(src)), heldout, out_h)
-    progress.task[:] = next_chunk * program.chunk
-    progress.start_task = next_chunk * program.chunk
+    _PROGRESS[name] = Progress(name, run.seeds, run.num_tasks, next_chunk * program.chunk, log)
     chunks_run = 0
     for c in range(next_chunk, num_chunks):
         start = c * program.chunk
@@ -366,14 +361,12 @@ def run_method(out: str, name: str, run: RunConfig, eval_config: continual.EvalC
                      per_task, metrics)
         out_h = program.heldout(states, heldout_tasks, program.put(_seed_keys(seeds, 1001 + c)))
         jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), c + 1), np.asarray(src)), heldout, out_h)
-        _report_chunk(log, name, seeds, metrics, start, stop, run.num_tasks)
+        _report_chunk(log, name, metrics, start, stop, run.num_tasks)
         _check_finite(log, name, seeds, metrics.task.per_iteration.nonfinite, start)
         if writer is not None:
             _log_tensorboard(writer, per_task, start, stop)
         elapsed = seconds + time.time() - start_time
-        checkpoints.save(c + 1, {"states": _flatten(states), "per_task": _flatten(per_task),
-                                 "heldout": _flatten(heldout),
-                                 "counters": {"next_chunk": np.int64(c + 1), "seconds": np.float64(elapsed)}})
+        checkpoints.save(c + 1, _record(states, per_task, heldout, c + 1, elapsed))
         chunks_run += 1
         if stop_after_chunks is not None and chunks_run >= stop_after_chunks and c + 1 < num_chunks:
             return None
@@ -385,7 +378,7 @@ def run_method(out: str, name: str, run: RunConfig, eval_config: continual.EvalC
     return raw
 
 
-def _report_chunk(log, name, seeds, metrics, start, stop, num_tasks):
+def _report_chunk(log, name, metrics, start, stop, num_tasks):
     its = np.asarray(metrics.task.iterations)[:, :stop - start]
     for t in range(stop - start):
         log(f"[{name}] task {start + t + 1}/{num_tasks} iterations-to-success per seed: {its[:, t].tolist()} "
@@ -467,8 +460,3 @@ def run(out: str, run_config: RunConfig, eval_config: continual.EvalConfig, meth
             raw = load_raw(out, name)
         raws[name] = raw
     return raws
-
-
-def remove_checkpoints(out: str) -> None:
-    """Deletes the checkpoints of a finished run (the raw metrics stay)."""
-    shutil.rmtree(os.path.join(out, "checkpoints"), ignore_errors=True)

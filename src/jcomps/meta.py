@@ -107,21 +107,12 @@ def _vtrace_terms(config: MetaConfig, log_prob, values, bootstrap, off: buffers.
     return weights * (returns - values), returns
 
 
-def inner_targets(config: MetaConfig, policy, value, slot, off: buffers.OffPolicyStore):
-    """(advantages f32[T, m] including clipped ρ, value targets f32[T, m]) for the inner step on slot ``slot``."""
-    log_prob = networks.policy_log_prob(policy, off.traj.obs, off.traj.action)
-    return _vtrace_terms(config, log_prob, _head(value, off.traj.obs, slot), _head(value, off.traj.last_obs, slot),
-                         off)
-
-
-def adapt(config: MetaConfig, policy, off: buffers.OffPolicyStore, advantages, log_prob_vjp=None):
+def adapt(config: MetaConfig, policy, off: buffers.OffPolicyStore, advantages, log_prob_vjp):
     """φ = θ + α ∇_θ J(θ) with J the importance-weighted policy-gradient objective on ``off``.
 
-    ``log_prob_vjp``: the VJP of θ ↦ log π_θ(a|s) on ``off`` when the caller already ran that forward pass.
+    ``log_prob_vjp``: the VJP of θ ↦ log π_θ(a|s) on ``off`` (the caller has run that forward pass already).
     """
     mask = off.traj.valid * off.mask[None, :]
-    if log_prob_vjp is None:
-        _, log_prob_vjp = jax.vjp(lambda p: networks.policy_log_prob(p, off.traj.obs, off.traj.action), policy)
     # ∇_θ masked_mean(log π_θ · Â) is the VJP of log π_θ with cotangent Â·mask / Σmask.
     (grads,) = log_prob_vjp(advantages * mask / jnp.maximum(jnp.sum(mask), 1.0))
     if config.first_order:
@@ -157,8 +148,9 @@ def task_loss(config: MetaConfig, policy, value, slot, batch: TaskBatch):
     return slot_objective(config, policy, value, slot, batch)[1][0]
 
 
-def _zero_unseen(batches: TaskBatch, task_valid) -> TaskBatch:
-    """Zeros every unseen slot's data, so that whatever it holds (even NaN) cannot reach a gradient."""
+def _zero_unseen(batches, task_valid):
+    """Zeros every unseen slot of a pytree with a leading slot axis (data, or per-slot gradients), with
+    ``where``, so that whatever an unseen slot holds (even NaN) cannot reach a gradient or a sum."""
     def zero(x):
         keep = task_valid.reshape(task_valid.shape + (1,) * (x.ndim - 1))
         return jnp.where(keep, x, jnp.zeros_like(x))
@@ -230,12 +222,8 @@ def meta_gradients(config: MetaConfig, policy, value, stores: buffers.SequenceSt
         slots = jnp.minimum(slots, num_slots - 1)
         batch = _zero_unseen(_slot_batches(config, stores, rng, slots), ok)
         grads, (bc, _) = grad_fn(config, policy, value, slots, batch)
-
-        def total(x):
-            keep = ok.reshape(ok.shape + (1,) * (x.ndim - 1))
-            return jnp.sum(jnp.where(keep, x, jnp.zeros_like(x)), axis=0)
-
-        return jax.tree.map(jnp.add, acc, jax.tree.map(total, (bc, grads)))
+        kept = _zero_unseen((bc, grads), ok)
+        return jax.tree.map(lambda a, x: a + jnp.sum(x, axis=0), acc, kept)
 
     zeros = jax.tree.map(jnp.zeros_like, (jnp.zeros((), jnp.float32), (policy, value)))
     loss, (g_policy, g_value) = jax.lax.fori_loop(0, (end + chunk - 1) // chunk, body, zeros)
