@@ -93,11 +93,19 @@ def test_meta_training_lowers_the_outer_bc_loss():
     state = meta.MetaState(policy, value, p_opt.init(policy), v_opt.init(value))
     batches = meta.sample_batches(CONFIG, stores, jax.random.PRNGKey(7))
     before = meta.meta_loss(CONFIG, policy, value, batches, stores.task_valid)
-    new, losses = jax.jit(lambda s, r: meta.meta_train(CONFIG, s, stores, r))(state, jax.random.PRNGKey(1))
+    calls = []
+    hook = lambda context, step, steps, loss: calls.append((int(context), int(step), int(steps), float(loss)))  # noqa: E731
+    new, losses = jax.jit(lambda s, r: meta.meta_train(CONFIG, s, stores, r, on_step=hook, context=jnp.int32(4)))(
+        state, jax.random.PRNGKey(1))
+    jax.effects_barrier()
     after = meta.meta_loss(CONFIG, new.policy, new.value, batches, stores.task_valid)
     assert float(after) < float(before) - 0.05, (before, after)
-    chex.assert_shape(losses, (CONFIG.num_meta_steps * CONFIG.num_outer_steps,))
+    steps = CONFIG.num_meta_steps * CONFIG.num_outer_steps
+    chex.assert_shape(losses, (steps,))
     assert np.all(np.isfinite(losses))
+    # The progress hook sees every outer update, in order, with the loss that update computed.
+    assert [c[:3] for c in sorted(calls, key=lambda c: c[1])] == [(4, i + 1, steps) for i in range(steps)]
+    np.testing.assert_allclose([c[3] for c in sorted(calls, key=lambda c: c[1])], losses, rtol=1e-6)
 
 
 def _reference_gradients(config, policy, value, stores, rng):

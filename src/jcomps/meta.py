@@ -14,7 +14,7 @@ Masked slots (tasks not seen yet) contribute nothing, so one compiled step serve
 from __future__ import annotations
 
 import dataclasses
-from typing import NamedTuple
+from typing import Any, Callable, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
@@ -246,12 +246,24 @@ def optimizers(config: MetaConfig):
     return optax.adam(config.outer_learning_rate), optax.adam(config.value_learning_rate)
 
 
-def meta_train(config: MetaConfig, state: MetaState, stores: buffers.SequenceStores, rng):
-    """``num_meta_steps`` × ``num_outer_steps`` outer updates; returns (state, outer losses f32[steps])."""
-    policy_opt, value_opt = optimizers(config)
+MetaStepHook = Callable[[Any, jax.Array, jax.Array, jax.Array], None]
 
-    def outer(state: MetaState, key):
+
+def meta_train(config: MetaConfig, state: MetaState, stores: buffers.SequenceStores, rng,
+               on_step: Optional[MetaStepHook] = None, context: Any = ()):
+    """``num_meta_steps`` × ``num_outer_steps`` outer updates; returns (state, outer losses f32[steps]).
+
+    ``on_step(context, step, steps, loss)``, if given, is a host function called through ``jax.debug.callback``
+    after every outer update (progress reports: meta-training a long sequence takes minutes on a CPU).
+    """
+    policy_opt, value_opt = optimizers(config)
+    steps = config.num_meta_steps * config.num_outer_steps
+
+    def outer(state: MetaState, xs):
+        key, step = xs
         loss, g, vg = meta_gradients(config, state.policy, state.value, stores, key)
+        if on_step is not None:
+            jax.debug.callback(on_step, context, step + 1, jnp.int32(steps), loss)
         finite = all_finite((loss, g, vg))
         up, popt = policy_opt.update(g, state.policy_opt, state.policy)
         vup, vopt = value_opt.update(vg, state.value_opt, state.value)
@@ -259,5 +271,4 @@ def meta_train(config: MetaConfig, state: MetaState, stores: buffers.SequenceSto
         new = jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, state)
         return new, jnp.where(finite, loss, jnp.nan)
 
-    steps = config.num_meta_steps * config.num_outer_steps
-    return jax.lax.scan(outer, state, jax.random.split(rng, steps))
+    return jax.lax.scan(outer, state, (jax.random.split(rng, steps), jnp.arange(steps, dtype=jnp.int32)))

@@ -6,7 +6,7 @@ from jcomps.envs.base import Family
 from jcomps.methods import comps, ppo_tl
 from jcomps.methods.base import Method, TaskMetrics
 
-# name -> (config class, constructor(family, config) -> Method)
+# name -> (config class, constructor(family, config, on_iteration, on_meta_step) -> Method)
 REGISTRY = {
     "ppo_tl": (ppo_tl.PPOTLConfig, ppo_tl.make),
     "comps": (comps.CoMPSConfig, comps.make),
@@ -22,18 +22,20 @@ def config_class(name: str):
     return REGISTRY[name][0]
 
 
-def make(name: str, family: Family, config=None, on_iteration=None) -> Method:
+def make(name: str, family: Family, config=None, on_iteration=None, on_meta_step=None) -> Method:
     """Method ``name`` (one of ``METHODS``) on ``family`` with ``config`` (default: the paper's defaults).
 
     ``on_iteration(context, iteration, success_rate, mean_return)``: optional host function called after every
     RL iteration (see ``ppo.rl_step``), with the ``context`` passed to ``learn_task``.
+    ``on_meta_step(context, step, steps, loss)``: likewise after every outer update of a meta-training phase
+    (``meta.meta_train``; methods without one ignore it).
     """
     cls = config_class(name)
     if config is None:
         config = cls()
     if not isinstance(config, cls):
         raise TypeError(f"method {name!r} takes a {cls.__name__}, got {type(config).__name__}")
-    return REGISTRY[name][1](family, config, on_iteration)
+    return REGISTRY[name][1](family, config, on_iteration, on_meta_step)
 
 
 __all__ = ["METHODS", "Method", "REGISTRY", "TaskMetrics", "config_class", "make"]

@@ -70,7 +70,8 @@ class CoMPSState(NamedTuple):
     task_index: jax.Array
 
 
-def make(family: Family, config: CoMPSConfig = CoMPSConfig(), on_iteration=None, name: str = "comps") -> Method:
+def make(family: Family, config: CoMPSConfig = CoMPSConfig(), on_iteration=None, on_meta_step=None,
+         name: str = "comps") -> Method:
     optimizer = ppo.make_optimizer(config.ppo)
     policy_opt, value_opt = meta.optimizers(config.meta)
     budget = config.ppo.budget_for(family)
@@ -103,7 +104,8 @@ def make(family: Family, config: CoMPSConfig = CoMPSConfig(), on_iteration=None,
         stores = buffers.sequence_write(state.stores, state.task_index, skilled, offpolicy)
         start = out.params.policy if config.warm_start else state.meta.policy
         meta_state = state.meta._replace(policy=start)
-        meta_state, _ = meta.meta_train(config.meta, meta_state, stores, k_meta)
+        meta_state, _ = meta.meta_train(config.meta, meta_state, stores, k_meta, on_step=on_meta_step,
+                                        context=context)
         params = out.params._replace(policy=meta_state.policy)
         new = CoMPSState(params, out.opt_state, meta_state, stores, rng, state.task_index + 1)
         return new, TaskMetrics(out.iterations, out.solved, out.metrics)
@@ -111,5 +113,6 @@ def make(family: Family, config: CoMPSConfig = CoMPSConfig(), on_iteration=None,
     return Method(name, config, family, init, learn_task)
 
 
-def make_gmps_ppo(family: Family, config: GMPSPPOConfig = GMPSPPOConfig(), on_iteration=None) -> Method:
-    return make(family, config, on_iteration, name="gmps_ppo")
+def make_gmps_ppo(family: Family, config: GMPSPPOConfig = GMPSPPOConfig(), on_iteration=None,
+                  on_meta_step=None) -> Method:
+    return make(family, config, on_iteration, on_meta_step, name="gmps_ppo")

@@ -31,7 +31,8 @@ class PPOTLState(NamedTuple):
     task_index: jax.Array
 
 
-def make(family: Family, config: PPOTLConfig = PPOTLConfig(), on_iteration=None) -> Method:
+def make(family: Family, config: PPOTLConfig = PPOTLConfig(), on_iteration=None, on_meta_step=None) -> Method:
+    del on_meta_step  # PPO+TL has no meta-training phase
     optimizer = ppo.make_optimizer(config.ppo)
 
     def init(rng: jax.Array) -> PPOTLState:
