@@ -16,6 +16,8 @@ import os
 import subprocess
 import sys
 
+from jcomps import hostdevices
+
 CHILD = r"""
 import dataclasses, json, sys, time
 import jax, jax.numpy as jnp, numpy as np
@@ -59,7 +61,7 @@ def main():
     args = parser.parse_args()
     base = None
     for n in args.devices:
-        env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={n}")
+        env = hostdevices.environment(n)
         payload = json.dumps({k: getattr(args, k) for k in ("family", "method", "seeds", "tasks", "budget",
                                                              "repeats")})
         out = subprocess.run([sys.executable, "-c", CHILD, payload], env=env, capture_output=True, text=True)

@@ -19,7 +19,7 @@ import sys
 
 
 def _set_host_devices(argv) -> None:
-    """``--devices N`` must reach XLA before JAX is imported (it sets the CPU device count)."""
+    """``--devices N`` must reach XLA before JAX is imported (the CPU device count and its thread pool)."""
     count = "1"
     for i, arg in enumerate(argv):
         if arg == "--devices" and i + 1 < len(argv):
@@ -27,8 +27,9 @@ def _set_host_devices(argv) -> None:
         elif arg.startswith("--devices="):
             count = arg.split("=", 1)[1]
     if count.isdigit() and int(count) >= 1:
-        flags = [f for f in os.environ.get("XLA_FLAGS", "").split() if "xla_force_host_platform_device_count" not in f]
-        os.environ["XLA_FLAGS"] = " ".join(flags + [f"--xla_force_host_platform_device_count={count}"])
+        from jcomps import hostdevices
+
+        hostdevices.configure(int(count))
 
 
 if __name__ == "__main__":
@@ -45,14 +46,14 @@ from jcomps import cli, continual, envs, experiment, methods, report  # noqa: E4
 
 
 def parse_args(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default=None, help="run directory (default: runs/<family>-<time>)")
     parser.add_argument("--resume", action="store_true",
                         help="continue the run in --out from its last checkpoint (options must match it)")
     parser.add_argument("--devices", type=int, default=1,
-                        help="CPU host devices to shard seeds over (the seed count is split evenly). Default 1: "
-                             "with jax 0.10.2, programs on 2 host devices sometimes hang in XLA:CPU (docs/design.md)")
+                        help="CPU host devices to shard the seeds over (the largest count up to this that divides "
+                             "the seeds is used; one per core is fastest; default: 1). Ignored on a GPU, where "
+                             "the run uses the GPUs")
     parser.add_argument("--tensorboard", action="store_true", help="also write TensorBoard logs (tensorboardX)")
     cli.add_config_args(parser, [experiment.RunConfig, continual.EvalConfig])
     cli.add_config_args(parser, [methods.config_class(m) for m in methods.METHODS])

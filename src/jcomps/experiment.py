@@ -130,7 +130,8 @@ def _seed_keys(seeds: list[int], salt: int) -> jax.Array:
 
 class Progress:
     """Host-side progress of one method: a status line at most every ``interval`` seconds, from the callbacks
-    of every RL iteration (method, task, iteration, success rate, elapsed, remaining)."""
+    of every RL iteration (method, task, iteration, success rate, elapsed, remaining) and of every outer update
+    of a meta-training phase (method, task, meta step, outer BC loss, elapsed, remaining)."""
 
     def __init__(self, name: str, seeds: int, num_tasks: int, start_task: int, log: Callable[[str], None],
                  interval: float = 10.0):
@@ -141,6 +142,7 @@ class Progress:
         self.task = np.full(seeds, start_task, np.int64)
         self.iteration = np.zeros(seeds, np.int64)
         self.success = np.zeros(seeds)
+        self.meta: dict = {}
 
     def __call__(self, context, iteration, success_rate, mean_return):
         del mean_return
@@ -151,6 +153,23 @@ class Progress:
             self.last = now
             self.log(self.line())
 
+    def meta_step(self, context, step, steps, loss):
+        """After every outer update of a meta-training phase (between two tasks)."""
+        seed, task = (int(x) for x in context)
+        self.meta[seed] = (task, int(step), int(steps), float(loss))
+        now = time.time()
+        if now - self.last >= self.interval:
+            self.last = now
+            task, step, steps, _ = self.meta[seed]
+            losses = [m[3] for m in self.meta.values()]
+            self.log(f"[{self.name}] task {task + 1}/{self.num_tasks} meta-training step {step}/{steps} bc loss "
+                     f"{float(np.mean(losses)):.3f} | elapsed {_clock(time.time() - self.start)} remaining "
+                     f"{self._remaining_text()}")
+
+    def _remaining_text(self) -> str:
+        remaining = self.remaining()
+        return "?" if remaining is None else "~" + _clock(remaining)
+
     def remaining(self) -> Optional[float]:
         done = float(np.mean(self.task)) - self.start_task
         if done <= 0:
@@ -158,12 +177,11 @@ class Progress:
         return (time.time() - self.start) * (self.num_tasks - float(np.mean(self.task))) / done
 
     def line(self) -> str:
-        remaining = self.remaining()
         lo, hi = int(self.task.min()) + 1, int(self.task.max()) + 1
         tasks = f"{lo}" if lo == hi else f"{lo}-{hi}"
         return (f"[{self.name}] task {tasks}/{self.num_tasks} iteration {int(self.iteration.max())} success "
                 f"{float(self.success.mean()):.2f} | elapsed {_clock(time.time() - self.start)} remaining "
-                f"{'?' if remaining is None else '~' + _clock(remaining)}")
+                f"{self._remaining_text()}")
 
 
 def _clock(seconds: float) -> str:
@@ -179,9 +197,6 @@ class MethodProgram:
         mesh = jax.make_mesh((devices,), ("seed",), devices=jax.devices()[:devices])
         seed = P("seed")
 
-        def init(rngs):
-            return jax.vmap(method.init)(rngs)
-
         def run_chunk(states, sequences, start, eval_keys, seed_index):
             fn = lambda s, q, k, i: continual.run_chunk(method, eval_config, s, q, start, chunk, k, i)  # noqa: E731
             return jax.vmap(fn)(states, sequences, eval_keys, seed_index)
@@ -191,12 +206,14 @@ class MethodProgram:
 
         shard = lambda f, specs: jax.jit(jax.shard_map(f, mesh=mesh, in_specs=specs, out_specs=seed,  # noqa: E731
                                                        check_vma=False))
-        # Initialisation runs on one device and is then split over the devices: the orthogonal initialiser's QR
-        # (a LAPACK call) inside a sharded program with more than one seed per device hangs XLA:CPU (seen with
-        # jax 0.10.2 on 2 host devices), and initialisation is cheap anyway.
-        init_one_device = jax.jit(init)
-        self.init = lambda rngs: self.put(jax.device_get(init_one_device(jax.device_put(jax.device_get(rngs),
-                                                                                        jax.devices()[0]))))
+        # Initialisation runs seed by seed, unbatched, and is then split over the devices. A batched QR (the
+        # orthogonal initialiser under vmap) is jaxlib's LAPACK kernel splitting the batch over XLA:CPU's intra-op
+        # thread pool and waiting for the parts on a pool thread; with N host devices on N cores that pool has
+        # one thread, so the kernel waits forever (seen with jax 0.10.2: gdb shows ParallelBatchMap blocked in
+        # QrFactorization on the only "tf_XLAEigen" thread). Unbatched, the kernel runs inline.
+        init_one = jax.jit(method.init)
+        self.init = lambda rngs: self.put(jax.tree.map(lambda *x: np.stack(x),
+                                                       *[jax.device_get(init_one(k)) for k in jax.device_get(rngs)]))
         self.run_chunk = shard(run_chunk, (seed, seed, P(), seed, seed))
         self.heldout = shard(heldout, (seed, P(), seed))
         self.sharding = jax.sharding.NamedSharding(mesh, seed)
@@ -220,7 +237,13 @@ def _program(name, family_name, config, eval_config, chunk, devices) -> MethodPr
             if hook is not None:
                 hook(context, iteration, success_rate, mean_return)
 
-        method = methods.make(name, envs.make(family_name), config, on_iteration=on_iteration)
+        def on_meta_step(context, step, steps, loss):
+            hook = _PROGRESS.get(name)
+            if hook is not None:
+                hook.meta_step(context, step, steps, loss)
+
+        method = methods.make(name, envs.make(family_name), config, on_iteration=on_iteration,
+                              on_meta_step=on_meta_step)
         _PROGRAMS[key] = MethodProgram(method, eval_config, chunk, devices)
     return _PROGRAMS[key]
 
