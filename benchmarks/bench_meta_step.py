@@ -6,7 +6,7 @@ inner policy-gradient step per task, the behaviour-cloning outer gradient throug
 both Adam updates. ``ratio_to_bc`` compares it with one plain BC gradient step (plus Adam) on the same skilled
 data. One line per case as ``key=value`` pairs.
 
-    python benchmarks/bench_meta_step.py [--tasks 1 10 40] [--repeats 10] [--first-order]
+    python benchmarks/bench_meta_step.py [--tasks 1 10 40] [--repeats 10] [--first-order] [--task-chunk 0]
 """
 
 from __future__ import annotations
@@ -50,9 +50,9 @@ def _best(fn, args, repeats):
     return compile_s, min(times)
 
 
-def bench(num_tasks: int, repeats: int, first_order: bool) -> str:
+def bench(num_tasks: int, repeats: int, first_order: bool, chunk: int = 0) -> str:
     config = meta.MetaConfig(num_meta_steps=1, num_outer_steps=1, inner_trajectories=10, skilled_trajectories=10,
-                             first_order=first_order)
+                             first_order=first_order, task_chunk=chunk)
     stores = _stores(num_tasks)
     policy = networks.init_actor_critic(jax.random.PRNGKey(0), OBS, ACT, HIDDEN, 0.5).policy
     value = meta.init_value_heads(jax.random.PRNGKey(1), OBS, HIDDEN, num_tasks)
@@ -73,7 +73,8 @@ def bench(num_tasks: int, repeats: int, first_order: bool) -> str:
 
     _, bc_s = _best(bc_step, (policy, adam.init(policy), batches), repeats)
     samples = num_tasks * (10 * T + 10 * T)
-    return (f"tasks={num_tasks} order={'first' if first_order else 'second'} compile_s={meta_compile:.1f} "
+    return (f"tasks={num_tasks} order={'first' if first_order else 'second'} "
+            f"task_chunk={meta.task_chunk(config, num_tasks)} compile_s={meta_compile:.1f} "
             f"step_s={meta_s:.4f} samples_per_s={samples / meta_s:.0f} bc_step_s={bc_s:.4f} "
             f"ratio_to_bc={meta_s / bc_s:.2f}")
 
@@ -83,10 +84,13 @@ def main():
     parser.add_argument("--tasks", nargs="+", type=int, default=[1, 10, 40])
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--first-order", action="store_true")
+    parser.add_argument("--task-chunk", nargs="+", type=int, default=[0],
+                        help="slots per loop iteration of the meta step (0: by backend, 1 on CPU, 8 elsewhere)")
     args = parser.parse_args()
     print(f"backend={jax.default_backend()} devices={jax.device_count()}", flush=True)
-    for n in args.tasks:
-        print(bench(n, args.repeats, args.first_order), flush=True)
+    for chunk in args.task_chunk:
+        for n in args.tasks:
+            print(bench(n, args.repeats, args.first_order, chunk), flush=True)
 
 
 if __name__ == "__main__":
