@@ -20,15 +20,17 @@ import sys
 
 def _set_host_devices(argv) -> None:
     """``--devices N`` must reach XLA before JAX is imported (the CPU device count and its thread pool)."""
-    count = "1"
+    count = None
     for i, arg in enumerate(argv):
         if arg == "--devices" and i + 1 < len(argv):
             count = argv[i + 1]
         elif arg.startswith("--devices="):
             count = arg.split("=", 1)[1]
-    if count.isdigit() and int(count) >= 1:
-        from jcomps import hostdevices
+    from jcomps import hostdevices
 
+    if count is None:
+        hostdevices.configure(hostdevices.cores())
+    elif count.isdigit() and int(count) >= 1:
         hostdevices.configure(int(count))
 
 
@@ -50,15 +52,15 @@ def parse_args(argv=None):
     parser.add_argument("--out", default=None, help="run directory (default: runs/<family>-<time>)")
     parser.add_argument("--resume", action="store_true",
                         help="continue the run in --out from its last checkpoint (options must match it)")
-    parser.add_argument("--devices", type=int, default=1,
-                        help="CPU host devices to shard the seeds over (the largest count up to this that divides "
-                             "the seeds is used; one per core is fastest; default: 1). Ignored on a GPU, where "
-                             "the run uses the GPUs")
+    parser.add_argument("--devices", type=int, default=None,
+                        help="CPU host devices to spread the seeds over (default: one per core). Seeds are rounded "
+                             "up to a multiple of the devices used; the extra ones are not reported. On a GPU "
+                             "machine the run uses the GPUs instead")
     parser.add_argument("--tensorboard", action="store_true", help="also write TensorBoard logs (tensorboardX)")
     cli.add_config_args(parser, [experiment.RunConfig, continual.EvalConfig])
     cli.add_config_args(parser, [methods.config_class(m) for m in methods.METHODS])
     args = parser.parse_args(argv)
-    if args.devices < 1:
+    if args.devices is not None and args.devices < 1:
         parser.error(f"--devices must be >= 1, got {args.devices}")
     if args.resume and not args.out:
         parser.error("--resume needs --out, the run directory to continue")

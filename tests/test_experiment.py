@@ -195,6 +195,25 @@ def test_eval_config_rejects_bad_values():
         continual.EvalConfig(heldout_iterations=-1)
 
 
-def test_num_devices_divides_the_seeds():
-    assert experiment.num_devices(4, 2) == 2 and experiment.num_devices(3, 2) == 1 and experiment.num_devices(1, 8) == 1
-    assert experiment.num_devices(6, 4) == 3
+def test_seeds_fill_the_devices():
+    assert experiment.num_devices(4, 2) == 2 and experiment.num_devices(3, 2) == 2 and experiment.num_devices(1, 8) == 1
+    assert experiment.padded_seeds(3, 2) == 4 and experiment.padded_seeds(4, 2) == 4 and experiment.padded_seeds(5, 1) == 5
+    assert experiment.padded_seeds(6, 4) == 8
+
+
+def test_two_host_devices_run_with_padded_seeds(tmp_path):
+    """The script itself on 2 host devices (a fresh process: the device count is set before JAX starts), with 3
+    seeds: they are padded to 4, two per device, and the results hold the 3 asked for."""
+    import subprocess
+    import sys
+
+    script = os.path.join(os.path.dirname(__file__), "..", "experiments", "run_sequence.py")
+    out = tmp_path / "two"
+    args = TINY + ["--methods", "ppo_tl", "--num-tasks", "2", "--seeds", "3", "--chunk-tasks", "1",
+                   "--devices", "2", "--out", str(out)]
+    proc = subprocess.run([sys.executable, script] + args, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "3 seeds (+1 to fill the devices, not reported) on 2 device(s)" in proc.stdout
+    m = json.loads((out / "results.json").read_text())["methods"]["ppo_tl"]
+    assert m["devices"] == 2 and np.asarray(m["iterations_to_success"]).shape == (3, 2)
+    assert np.asarray(m["heldout"]["adapted_return"]).shape == (3, 3)

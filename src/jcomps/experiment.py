@@ -119,9 +119,14 @@ def open_run_dir(out: str, description: dict, resume: bool) -> None:
 
 
 def num_devices(seeds: int, available: Optional[int] = None) -> int:
-    """The largest device count that divides ``seeds`` (seeds are split evenly over devices)."""
-    available = available or jax.device_count()
-    return max(d for d in range(1, min(seeds, available) + 1) if seeds % d == 0)
+    """How many devices ``seeds`` seeds are spread over: all available ones, at most one per seed."""
+    return max(1, min(seeds, available or jax.device_count()))
+
+
+def padded_seeds(seeds: int, devices: int) -> int:
+    """Seeds actually run: ``seeds`` rounded up to a multiple of ``devices`` (every device gets the same number;
+    the extra seeds, run + ``seeds``, ..., cost no wall time and are dropped from the results)."""
+    return -(-seeds // devices) * devices
 
 
 def _seed_keys(seeds: list[int], salt: int) -> jax.Array:
@@ -333,16 +338,17 @@ def run_method(out: str, name: str, run: RunConfig, eval_config: continual.EvalC
     ``stop_after_chunks`` (tests) returns None after that many chunks of this call, as if killed.
     """
     family = envs.make(run.family)
-    seeds = list(range(run.seed, run.seed + run.seeds))
     devices = num_devices(run.seeds)
+    padded = padded_seeds(run.seeds, devices)
+    seeds = list(range(run.seed, run.seed + padded))
     program = _program(name, run.family, config, eval_config, min(run.chunk_tasks, run.num_tasks), devices)
 
     values = np.stack([envs.sequence_values(family, run.sequence, s, run.num_tasks) for s in seeds])
-    sequences = jax.tree.map(lambda x: x.reshape((run.seeds, run.num_tasks) + x.shape[1:]),
+    sequences = jax.tree.map(lambda x: x.reshape((padded, run.num_tasks) + x.shape[1:]),
                              family.tasks(values.reshape(-1)))
     sequences = program.put(sequences)
     heldout_tasks = envs.held_out(family)
-    seed_index = program.put(np.arange(run.seeds, dtype=np.int32))
+    seed_index = program.put(np.arange(padded, dtype=np.int32))
     eval_keys = program.put(_seed_keys(seeds, 1))
     num_chunks = math.ceil(run.num_tasks / program.chunk)
 
@@ -367,13 +373,15 @@ def run_method(out: str, name: str, run: RunConfig, eval_config: continual.EvalC
                 f"{run.num_tasks} tasks done")
     writer = _tensorboard(out, name) if tensorboard else None
 
-    log(f"[{name}] {run.family} {run.sequence}, {run.num_tasks} tasks, {run.seeds} seeds on {devices} device(s), "
-        f"budget {config.ppo.budget_for(family)}, chunks of {program.chunk}; compiling...")
+    extra = f" (+{padded - run.seeds} to fill the devices, not reported)" if padded > run.seeds else ""
+    log(f"[{name}] {run.family} {run.sequence}, {run.num_tasks} tasks, {run.seeds} seeds{extra} on {devices} "
+        f"device(s), budget {config.ppo.budget_for(family)}, chunks of {program.chunk}; compiling...")
     start_time = time.time()
     if next_chunk == 0:
         out_h = program.heldout(states, heldout_tasks, program.put(_seed_keys(seeds, 1000)))
         jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), 0), np.asarray(src)), heldout, out_h)
-    _PROGRESS[name] = Progress(name, run.seeds, run.num_tasks, next_chunk * program.chunk, log)
+    _PROGRESS[name] = Progress(name, padded, run.num_tasks, next_chunk * program.chunk, log)
+    real = (slice(None, run.seeds),)  # the reported seeds
     chunks_run = 0
     for c in range(next_chunk, num_chunks):
         start = c * program.chunk
@@ -384,16 +392,17 @@ def run_method(out: str, name: str, run: RunConfig, eval_config: continual.EvalC
                      per_task, metrics)
         out_h = program.heldout(states, heldout_tasks, program.put(_seed_keys(seeds, 1001 + c)))
         jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), c + 1), np.asarray(src)), heldout, out_h)
-        _report_chunk(log, name, metrics, start, stop, run.num_tasks)
-        _check_finite(log, name, seeds, metrics.task.per_iteration.nonfinite, start)
+        _report_chunk(log, name, metrics, start, stop, run.num_tasks, run.seeds)
+        _check_finite(log, name, seeds[:run.seeds], metrics.task.per_iteration.nonfinite[real], start)
         if writer is not None:
-            _log_tensorboard(writer, per_task, start, stop)
+            _log_tensorboard(writer, jax.tree.map(lambda x: x[real], per_task), start, stop)
         elapsed = seconds + time.time() - start_time
         checkpoints.save(c + 1, _record(states, per_task, heldout, c + 1, elapsed))
         chunks_run += 1
         if stop_after_chunks is not None and chunks_run >= stop_after_chunks and c + 1 < num_chunks:
             return None
-    raw = {"per_task": per_task, "heldout": heldout, "seconds": seconds + time.time() - start_time,
+    raw = {"per_task": jax.tree.map(lambda x: x[real], per_task), "heldout": jax.tree.map(lambda x: x[real], heldout),
+           "seconds": seconds + time.time() - start_time,
            "devices": devices, "heldout_after_tasks": [min(c * program.chunk, run.num_tasks)
                                                        for c in range(num_chunks + 1)]}
     save_raw(out, name, raw)
@@ -401,8 +410,8 @@ def run_method(out: str, name: str, run: RunConfig, eval_config: continual.EvalC
     return raw
 
 
-def _report_chunk(log, name, metrics, start, stop, num_tasks):
-    its = np.asarray(metrics.task.iterations)[:, :stop - start]
+def _report_chunk(log, name, metrics, start, stop, num_tasks, seeds):
+    its = np.asarray(metrics.task.iterations)[:seeds, :stop - start]
     for t in range(stop - start):
         log(f"[{name}] task {start + t + 1}/{num_tasks} iterations-to-success per seed: {its[:, t].tolist()} "
             f"(mean {its[:, t].mean():.1f})")
