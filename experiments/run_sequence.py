@@ -14,18 +14,31 @@ three. Bad options exit with code 2 and a message naming the option.
 
 from __future__ import annotations
 
+import json
 import os
 import sys
 
 
 def _set_host_devices(argv) -> None:
-    """``--devices N`` must reach XLA before JAX is imported (the CPU device count and its thread pool)."""
-    count = None
-    for i, arg in enumerate(argv):
-        if arg == "--devices" and i + 1 < len(argv):
-            count = argv[i + 1]
-        elif arg.startswith("--devices="):
-            count = arg.split("=", 1)[1]
+    """``--devices N`` must reach XLA before JAX is imported (the CPU device count and its thread pool). Without
+    it: the count stored in the run directory on ``--resume`` (identical results need the same count), else one
+    device per core."""
+    def option(name):
+        for i, arg in enumerate(argv):
+            if arg == name and i + 1 < len(argv):
+                return argv[i + 1]
+            if arg.startswith(name + "="):
+                return arg.split("=", 1)[1]
+        return None
+
+    count = option("--devices")
+    if count is None and "--resume" in argv and option("--out") is not None:
+        try:
+            with open(os.path.join(option("--out"), "run.json")) as f:
+                stored = json.load(f).get("devices")
+            count = str(stored) if isinstance(stored, int) and stored >= 1 else None
+        except (OSError, ValueError):
+            pass  # parse_args reports a missing or unreadable run directory
     from jcomps import hostdevices
 
     if count is None:
@@ -39,7 +52,6 @@ if __name__ == "__main__":
 
 import argparse  # noqa: E402
 import dataclasses  # noqa: E402
-import json  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402

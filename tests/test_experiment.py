@@ -201,7 +201,7 @@ def test_seeds_fill_the_devices():
     assert experiment.padded_seeds(6, 4) == 8
 
 
-def test_two_host_devices_run_with_padded_seeds(tmp_path):
+def test_two_host_devices_run_with_padded_seeds(runner, tmp_path, capsys):
     """The script itself on 2 host devices (a fresh process: the device count is set before JAX starts), with 3
     seeds: they are padded to 4, two per device, and the results hold the 3 asked for."""
     import subprocess
@@ -217,3 +217,8 @@ def test_two_host_devices_run_with_padded_seeds(tmp_path):
     m = json.loads((out / "results.json").read_text())["methods"]["ppo_tl"]
     assert m["devices"] == 2 and np.asarray(m["iterations_to_success"]).shape == (3, 2)
     assert np.asarray(m["heldout"]["adapted_return"]).shape == (3, 3)
+    # Resuming it in this one-device process is refused: float rounding depends on the device count.
+    with pytest.raises(SystemExit) as exit_info:
+        runner.main(["--out", str(out), "--resume"])
+    assert exit_info.value.code == 2
+    assert "devices: run has 2, asked 1 (float rounding depends on it: resume with --devices 2)" in capsys.readouterr().err

@@ -44,7 +44,7 @@ class RunConfig:
     """``non-stationary`` (the paper's order) or ``stationary`` (the same list shuffled by seed)."""
     methods: tuple[str, ...] = ("comps", "ppo_tl")
     """Methods to run, one compiled program each."""
-    seeds: int = 3
+    seeds: int = 4
     """Number of seeds (a vmap axis, sharded over devices)."""
     seed: int = 0
     """The first seed; seeds are seed, seed + 1, ..."""
@@ -79,9 +79,11 @@ def _jsonable(x):
 
 
 def describe(run: RunConfig, eval_config: continual.EvalConfig, method_configs: dict) -> dict:
-    """The JSON description of a run (``run.json``)."""
+    """The JSON description of a run (``run.json``), with this process's device count: float rounding depends on
+    it, so a resume must use the same count (``experiments/run_sequence.py --resume`` takes it from here)."""
     return {"run": _jsonable(run), "eval": _jsonable(eval_config),
-            "methods": {name: _jsonable(method_configs[name]) for name in run.methods}}
+            "methods": {name: _jsonable(method_configs[name]) for name in run.methods},
+            "devices": jax.device_count()}
 
 
 def _differences(a, b, prefix="") -> list[str]:
@@ -109,6 +111,8 @@ def open_run_dir(out: str, description: dict, resume: bool) -> None:
         with open(run_json) as f:
             stored = json.load(f)
         diff = _differences(stored, description)
+        diff = [d + f" (float rounding depends on it: resume with --devices {stored['devices']})"
+                if d.startswith("devices:") else d for d in diff]
         if diff:
             raise RunError(f"--resume: {out} was made with another config: " + "; ".join(diff[:8]))
         return
