@@ -52,9 +52,16 @@ def run_seeds(method: Method, tasks, rngs: jax.Array, progress: Optional[Progres
     ``tasks`` is shared by all seeds, or, with ``tasks_per_seed``, has a leading seed axis (stationary
     sequences shuffled per seed). Returns (states, TaskMetrics) with a leading seed axis.
     """
-    fn = jax.vmap(lambda t, r, i: run_sequence(method, t, r, progress, i),
-                  in_axes=(0 if tasks_per_seed else None, 0, 0))
-    return jax.jit(fn)(tasks, rngs, jnp.arange(rngs.shape[0], dtype=jnp.int32))
+    def run(tasks, rngs, seed_index):
+        # Seeds are initialised one at a time (lax.map), not under vmap: a batched QR (orthogonal initialisers)
+        # is jaxlib's LAPACK kernel waiting on XLA:CPU's thread pool from a pool thread, which can hang a small
+        # machine (see jcomps.hostdevices). Unbatched it runs inline; the values are the same.
+        states = jax.lax.map(method.init, rngs)
+        fn = jax.vmap(lambda t, s, i: run_tasks(method, s, t, progress, i),
+                      in_axes=(0 if tasks_per_seed else None, 0, 0))
+        return fn(tasks, states, seed_index)
+
+    return jax.jit(run)(tasks, rngs, jnp.arange(rngs.shape[0], dtype=jnp.int32))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -9,6 +9,10 @@ N cores every pool thread can be waiting at once and nothing runs the parts: the
 with jax 0.10.2 on 2 cores and 2 devices; gdb shows both ``tf_XLAEigen`` threads in ``jax::ParallelBatchMap``).
 XLA sizes the pool from the ``NPROC`` environment variable when it is set, so :func:`configure` sets it to the
 core count plus the device count: each device can have one kernel waiting and all cores still have a thread.
+That covers jcomps' programs, where a device waits in at most one such kernel at a time (MJX calls them one
+after another; initialisation runs seed by seed, unbatched, where the kernel runs inline). A program that runs
+many independent batched LAPACK calls at once can still use up the pool. (jaxlib 0.11 reportedly builds this
+parallel path out; we pin 0.10.2.)
 
 >>> from jcomps import hostdevices
 >>> hostdevices.configure(2)      # before the first ``import jax`` in the process
