@@ -217,9 +217,9 @@ class MethodProgram:
                                                        check_vma=False))
         # Initialisation runs seed by seed, unbatched, and is then split over the devices. A batched QR (the
         # orthogonal initialiser under vmap) is jaxlib's LAPACK kernel splitting the batch over XLA:CPU's intra-op
-        # thread pool and waiting for the parts on a pool thread; with N host devices on N cores that pool has
-        # one thread, so the kernel waits forever (seen with jax 0.10.2: gdb shows ParallelBatchMap blocked in
-        # QrFactorization on the only "tf_XLAEigen" thread). Unbatched, the kernel runs inline.
+        # thread pool and waiting for the parts on a pool thread; several such QRs at once can occupy every pool
+        # thread and wait forever (seen with jax 0.10.2 on 2 host devices: gdb shows both "tf_XLAEigen" threads
+        # in ParallelBatchMap under QrFactorization). Unbatched, the kernel runs inline. See jcomps.hostdevices.
         init_one = jax.jit(method.init)
         self.init = lambda rngs: self.put(jax.tree.map(lambda *x: np.stack(x),
                                                        *[jax.device_get(init_one(k)) for k in jax.device_get(rngs)]))
