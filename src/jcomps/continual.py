@@ -45,6 +45,18 @@ def run_sequence(method: Method, tasks, rng: jax.Array, progress: Optional[Progr
     return run_tasks(method, method.init(rng), tasks, progress, seed_index)
 
 
+def init_seeds(method: Method, rngs: jax.Array):
+    """``method.init`` for each of the S keys ``rngs``, stacked (leading seed axis). Jittable.
+
+    One seed at a time (``lax.map``), not under ``vmap``: a batched QR (the orthogonal initialisers) is jaxlib's
+    LAPACK kernel splitting the batch over XLA:CPU's intra-op thread pool and waiting for the parts on a pool
+    thread; several at once can occupy every pool thread and wait forever (seen with jax 0.10.2 on 2 host
+    devices: gdb shows both "tf_XLAEigen" threads in ParallelBatchMap under QrFactorization; see
+    ``jcomps.hostdevices``). Unbatched, the kernel runs inline; the values are the same.
+    """
+    return jax.lax.map(method.init, rngs)
+
+
 def run_seeds(method: Method, tasks, rngs: jax.Array, progress: Optional[ProgressFn] = None,
               tasks_per_seed: bool = False):
     """``run_sequence`` vmapped over ``rngs`` (a batch of S keys), jitted as one program.
@@ -53,10 +65,7 @@ def run_seeds(method: Method, tasks, rngs: jax.Array, progress: Optional[Progres
     sequences shuffled per seed). Returns (states, TaskMetrics) with a leading seed axis.
     """
     def run(tasks, rngs, seed_index):
-        # Seeds are initialised one at a time (lax.map), not under vmap: a batched QR (orthogonal initialisers)
-        # is jaxlib's LAPACK kernel waiting on XLA:CPU's thread pool from a pool thread, which can hang a small
-        # machine (see jcomps.hostdevices). Unbatched it runs inline; the values are the same.
-        states = jax.lax.map(method.init, rngs)
+        states = init_seeds(method, rngs)
         fn = jax.vmap(lambda t, s, i: run_tasks(method, s, t, progress, i),
                       in_axes=(0 if tasks_per_seed else None, 0, 0))
         return fn(tasks, states, seed_index)

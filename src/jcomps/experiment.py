@@ -151,29 +151,27 @@ class Progress:
         self.task = np.full(seeds, start_task, np.int64)
         self.iteration = np.zeros(seeds, np.int64)
         self.success = np.zeros(seeds)
-        self.meta: dict = {}
+        self.meta_loss = np.full(seeds, np.nan)
 
     def __call__(self, context, iteration, success_rate, mean_return):
         del mean_return
         seed, task = (int(x) for x in context)
         self.task[seed], self.iteration[seed], self.success[seed] = task, int(iteration), float(success_rate)
-        now = time.time()
-        if now - self.last >= self.interval:
-            self.last = now
-            self.log(self.line())
+        self._throttled(self.line)
 
     def meta_step(self, context, step, steps, loss):
         """After every outer update of a meta-training phase (between two tasks)."""
         seed, task = (int(x) for x in context)
-        self.meta[seed] = (task, int(step), int(steps), float(loss))
+        self.meta_loss[seed] = float(loss)
+        self._throttled(lambda: f"[{self.name}] task {task + 1}/{self.num_tasks} meta-training step {int(step)}/"
+                                f"{int(steps)} bc loss {float(np.nanmean(self.meta_loss)):.3f} | elapsed "
+                                f"{_clock(time.time() - self.start)} remaining {self._remaining_text()}")
+
+    def _throttled(self, line: Callable[[], str]):
         now = time.time()
         if now - self.last >= self.interval:
             self.last = now
-            task, step, steps, _ = self.meta[seed]
-            losses = [m[3] for m in self.meta.values()]
-            self.log(f"[{self.name}] task {task + 1}/{self.num_tasks} meta-training step {step}/{steps} bc loss "
-                     f"{float(np.mean(losses)):.3f} | elapsed {_clock(time.time() - self.start)} remaining "
-                     f"{self._remaining_text()}")
+            self.log(line())
 
     def _remaining_text(self) -> str:
         remaining = self.remaining()
@@ -215,14 +213,10 @@ class MethodProgram:
 
         shard = lambda f, specs: jax.jit(jax.shard_map(f, mesh=mesh, in_specs=specs, out_specs=seed,  # noqa: E731
                                                        check_vma=False))
-        # Initialisation runs seed by seed, unbatched, and is then split over the devices. A batched QR (the
-        # orthogonal initialiser under vmap) is jaxlib's LAPACK kernel splitting the batch over XLA:CPU's intra-op
-        # thread pool and waiting for the parts on a pool thread; several such QRs at once can occupy every pool
-        # thread and wait forever (seen with jax 0.10.2 on 2 host devices: gdb shows both "tf_XLAEigen" threads
-        # in ParallelBatchMap under QrFactorization). Unbatched, the kernel runs inline. See jcomps.hostdevices.
-        init_one = jax.jit(method.init)
-        self.init = lambda rngs: self.put(jax.tree.map(lambda *x: np.stack(x),
-                                                       *[jax.device_get(init_one(k)) for k in jax.device_get(rngs)]))
+        # Initialisation runs on one device (seed by seed, see continual.init_seeds), then is split over them.
+        init = jax.jit(lambda rngs: continual.init_seeds(method, rngs))
+        self.init = lambda rngs: self.put(jax.device_get(init(jax.device_put(jax.device_get(rngs),
+                                                                              jax.devices()[0]))))
         self.run_chunk = shard(run_chunk, (seed, seed, P(), seed, seed))
         self.heldout = shard(heldout, (seed, P(), seed))
         self.sharding = jax.sharding.NamedSharding(mesh, seed)
@@ -396,8 +390,9 @@ def run_method(out: str, name: str, run: RunConfig, eval_config: continual.EvalC
                      per_task, metrics)
         out_h = program.heldout(states, heldout_tasks, program.put(_seed_keys(seeds, 1001 + c)))
         jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), c + 1), np.asarray(src)), heldout, out_h)
-        _report_chunk(log, name, metrics, start, stop, run.num_tasks, run.seeds)
-        _check_finite(log, name, seeds[:run.seeds], metrics.task.per_iteration.nonfinite[real], start)
+        reported = jax.tree.map(lambda x: x[real], metrics)
+        _report_chunk(log, name, reported, start, stop, run.num_tasks)
+        _check_finite(log, name, seeds, reported.task.per_iteration.nonfinite, start)
         if writer is not None:
             _log_tensorboard(writer, jax.tree.map(lambda x: x[real], per_task), start, stop)
         elapsed = seconds + time.time() - start_time
@@ -414,8 +409,8 @@ def run_method(out: str, name: str, run: RunConfig, eval_config: continual.EvalC
     return raw
 
 
-def _report_chunk(log, name, metrics, start, stop, num_tasks, seeds):
-    its = np.asarray(metrics.task.iterations)[:seeds, :stop - start]
+def _report_chunk(log, name, metrics, start, stop, num_tasks):
+    its = np.asarray(metrics.task.iterations)[:, :stop - start]
     for t in range(stop - start):
         log(f"[{name}] task {start + t + 1}/{num_tasks} iterations-to-success per seed: {its[:, t].tolist()} "
             f"(mean {its[:, t].mean():.1f})")
