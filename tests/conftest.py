@@ -6,15 +6,23 @@ few examples, so the suite stays fast on a 2-core CPU. ``HYPOTHESIS_PROFILE=thor
 Matrix products run at full float32 precision: on GPUs JAX's default is TF32 (about 3 significant digits), which
 fails the tests that compare two computations of the same gradient at float32 tolerances (seen on an H100 with
 jax 0.11.2; with ``highest`` the meta, V-trace and CoMPS tests pass there). On CPU this changes nothing.
+
+JAX sees two CPU host devices (set through ``jcomps.hostdevices`` before JAX starts, with its deadlock-free
+thread pool), so the runner's sharding of seeds over devices is tested in-process.
 """
 
 import importlib.util
 import os
 import pathlib
 
-import jax
-import pytest
-from hypothesis import settings
+from jcomps import hostdevices
+
+if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", ""):
+    hostdevices.configure(2)
+
+import jax  # noqa: E402
+import pytest  # noqa: E402
+from hypothesis import settings  # noqa: E402
 
 jax.config.update("jax_default_matmul_precision", "highest")
 
