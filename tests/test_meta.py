@@ -48,6 +48,8 @@ def test_meta_gradient_matches_finite_differences(first_order):
         grad = jax.grad(lambda p: meta.meta_loss(dataclasses.replace(config, first_order=first_order), p, value,
                                                  batches, stores.task_valid))(policy)
         direction = jax.tree.map(lambda x: jnp.asarray(np.random.default_rng(3).normal(size=x.shape)), policy)
+        # The observation statistics are data, not parameters (no gradient by design): hold them fixed.
+        direction["obs_norm"] = jax.tree.map(jnp.zeros_like, direction["obs_norm"])
         eps = 1e-5
         shift = lambda s: jax.tree.map(lambda p, d: p + s * eps * d, policy, direction)  # noqa: E731
         numeric = (loss(shift(1.0)) - loss(shift(-1.0))) / (2 * eps)

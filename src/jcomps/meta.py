@@ -14,7 +14,7 @@ Masked slots (tasks not seen yet) contribute nothing, so one compiled step serve
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable, NamedTuple, Optional
+from typing import Any, Callable, ClassVar, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
@@ -58,6 +58,11 @@ class MetaConfig:
     """Stop the gradient through the inner step (first-order approximation)."""
     task_chunk: int = 0
     """Task slots computed in parallel per loop iteration of the meta step; 0: 1 on CPU, 8 on accelerators."""
+
+    TRACED: ClassVar[frozenset] = frozenset({
+        "outer_learning_rate", "inner_learning_rate", "value_learning_rate", "discount", "rho_bar", "c_bar",
+        "pg_rho_bar"})
+    """Fields that may hold traced scalars (a hyperparameter-grid axis inside one compiled program)."""
 
     def __post_init__(self):
         for name in ("outer_learning_rate", "inner_learning_rate", "value_learning_rate", "rho_bar", "c_bar",
@@ -134,9 +139,11 @@ def slot_objective(config: MetaConfig, policy, value, slot, batch: TaskBatch):
     importance weights, the targets, the inner objective and the value loss.
     """
     off = batch.off
-    values = _head(value, off.traj.obs, slot)
+    # The value heads see observations normalised like the policy's (statistics are constants).
+    values = _head(value, networks.normalize_obs(policy, off.traj.obs), slot)
+    bootstrap = _head(value, networks.normalize_obs(policy, off.traj.last_obs), slot)
     log_prob, log_prob_vjp = jax.vjp(lambda p: networks.policy_log_prob(p, off.traj.obs, off.traj.action), policy)
-    advantages, targets = _vtrace_terms(config, log_prob, values, _head(value, off.traj.last_obs, slot), off)
+    advantages, targets = _vtrace_terms(config, log_prob, values, bootstrap, off)
     adapted = adapt(config, policy, off, advantages, log_prob_vjp)
     bc = bc_loss(adapted, batch.skilled_obs, batch.skilled_action, batch.skilled_valid)
     value_l2 = masked_mean(jnp.square(values - targets), off.traj.valid * off.mask[None, :])

@@ -47,8 +47,63 @@ def mlp_apply(layers: list[dict], x: jax.Array) -> jax.Array:
     return out.reshape(lead + out.shape[-1:])
 
 
+OBS_CLIP = 10.0
+"""Normalised observations are clipped to [-OBS_CLIP, OBS_CLIP] (a guard against rare outliers)."""
+OBS_STD_MIN = 1e-3
+"""Floor on the running standard deviation (a constant observation component stays finite)."""
+
+
+class ObsNorm(NamedTuple):
+    """Running observation statistics (Welford/Chan merge): ``mean`` and ``var`` f32[obs_size], ``count`` f32[].
+
+    With ``count == 0`` (fresh) the normaliser is the identity (mean 0, variance 1).
+    """
+
+    mean: jax.Array
+    var: jax.Array
+    count: jax.Array
+
+
+def obs_norm_init(obs_size: int) -> ObsNorm:
+    """The identity normaliser."""
+    return ObsNorm(jnp.zeros((obs_size,), jnp.float32), jnp.ones((obs_size,), jnp.float32), jnp.float32(0.0))
+
+
+def obs_norm_update(norm: ObsNorm, obs: jax.Array, mask: jax.Array) -> ObsNorm:
+    """Merges the observations ``obs`` f32[..., obs_size] where ``mask`` f32[...] is 1 into ``norm``.
+
+    Exact for any split of the data into batches (the parallel-variance merge of Chan et al.).
+    """
+    w = mask[..., None].astype(jnp.float32)
+    n = jnp.sum(mask.astype(jnp.float32))
+    axes = tuple(range(obs.ndim - 1))
+    batch_mean = jnp.sum(obs * w, axis=axes) / jnp.maximum(n, 1.0)
+    batch_var = jnp.sum(w * jnp.square(obs - batch_mean), axis=axes) / jnp.maximum(n, 1.0)
+    total = norm.count + n
+    delta = batch_mean - norm.mean
+    frac = n / jnp.maximum(total, 1.0)
+    mean = norm.mean + delta * frac
+    var = (norm.var * norm.count + batch_var * n + jnp.square(delta) * norm.count * frac) / jnp.maximum(total, 1.0)
+    fresh = norm.count <= 0
+    var = jnp.where(fresh, batch_var, var)
+    keep = n <= 0
+    return ObsNorm(jnp.where(keep, norm.mean, mean), jnp.where(keep, norm.var, var), total)
+
+
+def normalize_obs(policy: dict, obs: jax.Array) -> jax.Array:
+    """``obs`` standardised by the policy's running statistics (``policy['obs_norm']``), clipped to ±OBS_CLIP.
+
+    The statistics are data, not parameters: no gradient flows into them, so optimisers (PPO's, the meta step's
+    outer and inner updates) leave them unchanged.
+    """
+    norm = jax.lax.stop_gradient(policy["obs_norm"])
+    std = jnp.maximum(jnp.sqrt(norm.var), OBS_STD_MIN)
+    return jnp.clip((obs - norm.mean) / std, -OBS_CLIP, OBS_CLIP)
+
+
 class ActorCriticParams(NamedTuple):
-    """policy: {'mean': MLP layers, 'log_std': f32[action_size]}; value: MLP layers with one output."""
+    """policy: {'mean': MLP layers, 'log_std': f32[action_size], 'obs_norm': ObsNorm}; value: MLP layers with
+    one output, fed the observations normalised by the policy's statistics (``value_of``)."""
 
     policy: dict
     value: list
@@ -56,19 +111,21 @@ class ActorCriticParams(NamedTuple):
 
 def init_actor_critic(rng: jax.Array, obs_size: int, action_size: int, hidden_sizes: Sequence[int],
                       init_std: float) -> ActorCriticParams:
-    """Fresh policy (mean MLP with small last layer, log-std = log ``init_std``) and value MLP."""
+    """Fresh policy (mean MLP with small last layer, log-std = log ``init_std``, identity normaliser) and value
+    MLP. ``init_std`` may be a traced scalar (a hyperparameter-grid axis)."""
     k_pi, k_v = jax.random.split(rng)
     sizes = (obs_size, *hidden_sizes)
     policy = {
         "mean": mlp_init(k_pi, (*sizes, action_size), final_scale=0.01),
-        "log_std": jnp.full((action_size,), math.log(init_std), dtype=jnp.float32),
+        "log_std": jnp.full((action_size,), jnp.log(jnp.asarray(init_std, jnp.float32)), dtype=jnp.float32),
+        "obs_norm": obs_norm_init(obs_size),
     }
     return ActorCriticParams(policy=policy, value=mlp_init(k_v, (*sizes, 1), final_scale=1.0))
 
 
 def policy_dist(policy: dict, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """Mean f32[..., A] and log-std f32[A] of the Gaussian policy at ``obs`` f32[..., obs_size]."""
-    return mlp_apply(policy["mean"], obs), policy["log_std"]
+    """Mean f32[..., A] and log-std f32[A] of the Gaussian policy at (raw) ``obs`` f32[..., obs_size]."""
+    return mlp_apply(policy["mean"], normalize_obs(policy, obs)), policy["log_std"]
 
 
 def gaussian_log_prob(mean: jax.Array, log_std: jax.Array, action: jax.Array) -> jax.Array:
@@ -107,5 +164,10 @@ def action_from_noise(policy: dict, obs: jax.Array, noise: jax.Array) -> tuple[j
 
 
 def value_apply(value: list, obs: jax.Array) -> jax.Array:
-    """V(obs) f32[...] for ``obs`` f32[..., obs_size]."""
+    """V(obs) f32[...] for ``obs`` f32[..., obs_size] as the network sees it (already normalised)."""
     return mlp_apply(value, obs)[..., 0]
+
+
+def value_of(params: ActorCriticParams, obs: jax.Array) -> jax.Array:
+    """V(obs) f32[...] for raw ``obs``, normalised by the policy's running statistics."""
+    return value_apply(params.value, normalize_obs(params.policy, obs))

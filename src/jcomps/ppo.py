@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, Callable, NamedTuple, Optional
+from typing import Any, Callable, ClassVar, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
@@ -54,8 +54,19 @@ class PPOConfig:
     """Global gradient-norm clip."""
     normalize_advantages: bool = True
     """Standardise advantages over each minibatch's valid samples."""
+    normalize_observations: bool = True
+    """Feed policy and value the observations standardised by running statistics (kept in the policy, updated
+    after every PPO update, carried across tasks; no gradient flows into them)."""
+    reward_scale: float = 1.0
+    """Rewards are multiplied by this for the value targets and advantages (not for returns or success)."""
     budget: Optional[int] = None
     """Iterations per task N; None takes the family's paper value (500 Cheetah, 1000 Ant, 100 Point Goal)."""
+
+    TRACED: ClassVar[frozenset] = frozenset({
+        "learning_rate", "init_std", "clip_epsilon", "discount", "gae_lambda", "value_coef", "entropy_coef",
+        "max_grad_norm", "reward_scale"})
+    """Fields that may hold traced scalars (a hyperparameter-grid axis inside one compiled program); every other
+    field changes shapes or Python control flow."""
 
     def __post_init__(self):
         check_field(self.num_trajectories >= 1, "num_trajectories", self.num_trajectories, "an integer >= 1")
@@ -71,6 +82,7 @@ class PPOConfig:
         check_field(self.value_coef >= 0, "value_coef", self.value_coef, "a number >= 0")
         check_field(self.entropy_coef >= 0, "entropy_coef", self.entropy_coef, "a number >= 0")
         check_field(self.max_grad_norm > 0, "max_grad_norm", self.max_grad_norm, "a number > 0")
+        check_field(self.reward_scale > 0, "reward_scale", self.reward_scale, "a number > 0")
         check_field(self.budget is None or self.budget >= 1, "budget", self.budget, "None or an integer >= 1")
 
     def budget_for(self, family: Family) -> int:
@@ -177,8 +189,7 @@ def ppo_loss(params: networks.ActorCriticParams, batch: dict, config: PPOConfig)
     ratio = jnp.exp(log_ratio)
     surrogate = jnp.minimum(ratio * adv, jnp.clip(ratio, 1 - config.clip_epsilon, 1 + config.clip_epsilon) * adv)
     policy_loss = -masked_mean(surrogate, mask)
-    value_loss = 0.5 * masked_mean(jnp.square(networks.value_apply(params.value, batch["obs"]) - batch["target"]),
-                                    mask)
+    value_loss = 0.5 * masked_mean(jnp.square(networks.value_of(params, batch["obs"]) - batch["target"]), mask)
     entropy = networks.gaussian_entropy(params.policy["log_std"])
     approx_kl = masked_mean(ratio - 1.0 - log_ratio, mask)
     loss = policy_loss + config.value_coef * value_loss - config.entropy_coef * entropy
@@ -197,9 +208,10 @@ def ppo_update(config: PPOConfig, optimizer, params, opt_state, traj: acting.Tra
     A step whose loss or gradient is not finite is skipped. Returns (params, opt_state, mean loss terms f32[4],
     nonfinite f32[]).
     """
-    values = networks.value_apply(params.value, traj.obs)
-    bootstrap = networks.value_apply(params.value, traj.last_obs)
-    advantage, target = gae(traj.reward, values, bootstrap, traj.done, config.discount, config.gae_lambda)
+    values = networks.value_of(params, traj.obs)
+    bootstrap = networks.value_of(params, traj.last_obs)
+    advantage, target = gae(traj.reward * config.reward_scale, values, bootstrap, traj.done, config.discount,
+                            config.gae_lambda)
     flat = {
         "obs": traj.obs, "action": traj.action, "log_prob": traj.log_prob, "valid": traj.valid,
         "advantage": advantage, "target": target,
@@ -273,7 +285,11 @@ def rl_step(config: PPOConfig, family: Family, params: networks.ActorCriticParam
         aux = c.aux if observe is None else observe(c.aux, traj, c.it)
 
         def update(_):
-            return ppo_update(config, optimizer, c.params, c.opt_state, traj, k_upd)
+            params, opt_state, terms, bad = ppo_update(config, optimizer, c.params, c.opt_state, traj, k_upd)
+            if config.normalize_observations:
+                norm = networks.obs_norm_update(params.policy["obs_norm"], traj.obs, traj.valid)
+                params = params._replace(policy={**params.policy, "obs_norm": norm})
+            return params, opt_state, terms, bad
 
         def skip(_):
             return c.params, c.opt_state, jnp.zeros((4,), jnp.float32), jnp.float32(0.0)

@@ -102,7 +102,10 @@ def make(family: Family, config: CoMPSConfig = CoMPSConfig(), on_iteration=None,
         skilled, recent = out.aux
         offpolicy = buffers.sample_offpolicy(recent, config.num_offpolicy, k_off)
         stores = buffers.sequence_write(state.stores, state.task_index, skilled, offpolicy)
-        start = out.params.policy if config.warm_start else state.meta.policy
+        # Without the warm start the meta step starts from the last meta policy, with the newest observation
+        # statistics (they describe the data the policy will see, not a learnt quantity).
+        start = out.params.policy if config.warm_start else {**state.meta.policy,
+                                                             "obs_norm": out.params.policy["obs_norm"]}
         meta_state = state.meta._replace(policy=start)
         meta_state, _ = meta.meta_train(config.meta, meta_state, stores, k_meta, on_step=on_meta_step,
                                         context=context)
