@@ -342,6 +342,25 @@ def test_ant_dir_terminates_when_torso_too_high_then_freezes(ant_dir):
     np.testing.assert_array_equal(traj.t, np.arange(1, T + 1))
 
 
+def _move_torso(state: envs.EnvState, xy) -> envs.EnvState:
+    sim = state.sim
+    xy = jnp.asarray(xy, jnp.float32)
+    return state._replace(sim=sim.replace(qpos=sim.qpos.at[:2].set(xy), q=sim.q.at[:2].set(xy)))
+
+
+def test_ant_goal_oracle_at_the_goal_scores_above_the_threshold(ant_goal):
+    # A policy that has reached the goal and stays there must score above the threshold: an Ant placed on its
+    # goal (small random actions, it stays put) succeeds at every step, so its success rate is 1 >= 0.3.
+    ro = ant_goal
+    task = ro.task(0)
+    traj = ro.rollout(_move_torso(ro.s0, task.goal), task, 0.1 * ro.actions[0])
+    np.testing.assert_array_equal(traj.success, np.ones(T, np.float32))
+    assert float(ro.fam.success_rate(traj.success[:, None])) >= ro.fam.success_threshold
+    # ... and 0.6 m away (L1) from it, none.
+    traj = ro.rollout(_move_torso(ro.s0, task.goal + jnp.asarray([0.6, 0.0])), task, 0.1 * ro.actions[0])
+    np.testing.assert_array_equal(traj.success, np.zeros(T, np.float32))
+
+
 def test_ant_goal_never_terminates(ant_goal):
     ro = ant_goal
     traj = ro.rollout(_lift_torso(ro.s0, 1.5), ro.task(0), ro.actions[0])

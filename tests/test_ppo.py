@@ -139,3 +139,72 @@ def test_rollout_shapes_and_truncation_bootstrap_obs(point):
     # The observation after the last step is the last obs plus the last (clipped) move.
     moved = traj.obs[-1] + 0.1 * jnp.clip(traj.action[-1], -1, 1)
     chex.assert_trees_all_close(traj.last_obs, moved, atol=1e-6)
+
+
+# ------------------------------------------------------------------ observation normaliser and reward scale
+
+def test_obs_norm_merge_equals_statistics_of_all_data():
+    # Law: merging batches one by one gives the mean and (population) variance of all the data at once, and
+    # masked-out entries count for nothing.
+    rng = np.random.default_rng(0)
+    batches = [rng.normal(3.0, 2.0, size=(7, 4, 3)).astype(np.float32) for _ in range(3)]
+    masks = [(rng.random((7, 4)) < 0.7).astype(np.float32) for _ in range(3)]
+    norm = networks.obs_norm_init(3)
+    for x, m in zip(batches, masks):
+        norm = networks.obs_norm_update(norm, jnp.asarray(x), jnp.asarray(m))
+    kept = np.concatenate([x[m > 0] for x, m in zip(batches, masks)])
+    np.testing.assert_allclose(np.asarray(norm.mean), kept.mean(0), rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(norm.var), kept.var(0), rtol=1e-4, atol=1e-5)
+    assert float(norm.count) == len(kept)
+    # An empty batch changes nothing.
+    same = networks.obs_norm_update(norm, jnp.asarray(batches[0]), jnp.zeros((7, 4), jnp.float32))
+    chex.assert_trees_all_equal(same, norm)
+
+
+def test_normalised_observations_and_no_gradient_into_the_statistics():
+    params = networks.init_actor_critic(jax.random.PRNGKey(0), 3, 2, (8,), 0.5)
+    obs = jnp.asarray(np.random.default_rng(1).normal(5.0, 3.0, size=(50, 3)), jnp.float32)
+    norm = networks.obs_norm_update(params.policy["obs_norm"], obs, jnp.ones((50,), jnp.float32))
+    policy = {**params.policy, "obs_norm": norm}
+    z = networks.normalize_obs(policy, obs)
+    np.testing.assert_allclose(np.asarray(z.mean(0)), 0.0, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(z.std(0)), 1.0, atol=1e-4)
+    assert float(jnp.max(jnp.abs(networks.normalize_obs(policy, obs * 1e6)))) == networks.OBS_CLIP
+    grads = jax.grad(lambda p: jnp.sum(networks.policy_log_prob(p, obs, jnp.ones((50, 2)))))(policy)
+    chex.assert_trees_all_equal(grads["obs_norm"], jax.tree.map(jnp.zeros_like, norm))
+
+
+@pytest.mark.parametrize("normalize", [True, False])
+def test_rl_step_updates_the_statistics_only_when_normalising(point, normalize):
+    hard = dataclasses.replace(point, success_threshold=2.0)
+    out, params = _run(hard, dataclasses.replace(SMALL, budget=2, normalize_observations=normalize))
+    norm = out.params.policy["obs_norm"]
+    if normalize:  # two iterations of 4 episodes of T_max steps were merged
+        assert float(norm.count) == 2 * 4 * point.max_steps
+        assert float(jnp.min(norm.var)) > 0 and not np.allclose(np.asarray(norm.var), 1.0)
+    else:
+        chex.assert_trees_all_equal(norm, params.policy["obs_norm"])
+
+
+def test_reward_scale_scales_value_targets():
+    # GAE is linear: scaled rewards and values give scaled advantages and targets; the RL step feeds the value
+    # loss the scaled targets (advantages are standardised per minibatch, so the policy sees no difference).
+    rng = np.random.default_rng(2)
+    rewards, values = rng.normal(size=(2, 6, 3)).astype(np.float32)
+    boot = rng.normal(size=(3,)).astype(np.float32)
+    dones = np.zeros_like(rewards)
+    adv, targets = ppo.gae(0.1 * rewards, 0.1 * values, 0.1 * boot, dones, 0.99, 0.95)
+    adv1, targets1 = ppo.gae(rewards, values, boot, dones, 0.99, 0.95)
+    chex.assert_trees_all_close((adv, targets), (0.1 * adv1, 0.1 * targets1), rtol=1e-5, atol=1e-6)
+
+
+def test_family_defaults_are_valid_configs():
+    from jcomps import methods
+
+    for family in envs.FAMILIES:
+        config = ppo.family_config(family)
+        for field, value in ppo.FAMILY_DEFAULTS[family].items():
+            assert getattr(config, field) == value
+        for name in methods.METHODS:
+            assert methods.default_config(name, family).ppo == config
+    assert not ppo.family_config("point_goal").normalize_observations

@@ -96,6 +96,23 @@ def check_field(ok: bool, field: str, value, allowed: str):
         raise ValueError(f"invalid config value {field}={value!r}; allowed: {allowed}")
 
 
+# Each family's calibrated PPO settings (docs/families.md has the calibration tables and commands): the defaults
+# of every PPO-based method on that family (``family_config``, ``jcomps.methods.default_config``).
+FAMILY_DEFAULTS: dict[str, dict[str, Any]] = {
+    # Observations are already positions of order 1 and the threshold was calibrated without normalisation.
+    "point_goal": {"normalize_observations": False},
+    "cheetah_vel": {"reward_scale": 0.1},
+    "ant_goal": {"reward_scale": 0.1},
+    "ant_dir": {"reward_scale": 0.1},
+}
+
+
+def family_config(family_name: str, base: Optional[PPOConfig] = None) -> PPOConfig:
+    """``base`` (default: ``PPOConfig()``) with family ``family_name``'s calibrated settings put over it."""
+    base = PPOConfig() if base is None else base
+    return dataclasses.replace(base, **FAMILY_DEFAULTS.get(family_name, {}))
+
+
 class IterationMetrics(NamedTuple):
     """Per-iteration metrics; inside ``rl_step`` each field is f32[budget] (bool for ``valid``).
 

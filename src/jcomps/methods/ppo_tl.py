@@ -1,4 +1,5 @@
-"""PPO+TL: PPO on each task, parameters carried to the next task, no meta step (the paper's baseline)."""
+"""PPO+TL: PPO on each task, parameters carried to the next task, no meta step (the paper's baseline); and PPO
+from scratch: a fresh random policy for every task (the single-task reference the paper tunes PPO on)."""
 
 from __future__ import annotations
 
@@ -31,7 +32,10 @@ class PPOTLState(NamedTuple):
     task_index: jax.Array
 
 
-def make(family: Family, config: PPOTLConfig = PPOTLConfig(), on_iteration=None, on_meta_step=None) -> Method:
+def make(family: Family, config: PPOTLConfig = PPOTLConfig(), on_iteration=None, on_meta_step=None,
+         scratch: bool = False) -> Method:
+    """PPO+TL; with ``scratch``, the method ``ppo``: every task starts from freshly initialised parameters (and
+    a fresh Adam state), drawn from the method's own random stream."""
     del on_meta_step  # PPO+TL has no meta-training phase
     optimizer = ppo.make_optimizer(config.ppo)
 
@@ -42,10 +46,21 @@ def make(family: Family, config: PPOTLConfig = PPOTLConfig(), on_iteration=None,
 
     def learn_task(state: PPOTLState, task, context=()) -> tuple[PPOTLState, TaskMetrics]:
         rng, k = jax.random.split(state.rng)
-        opt_state = optimizer.init(state.params) if config.reset_optimizer else state.opt_state
-        out = ppo.rl_step(config.ppo, family, state.params, opt_state, task, k, on_iteration=on_iteration,
+        if scratch:
+            k, k_init = jax.random.split(k)
+            params = ppo.init_params(config.ppo, family, k_init)
+        else:
+            params = state.params
+        opt_state = optimizer.init(params) if config.reset_optimizer or scratch else state.opt_state
+        out = ppo.rl_step(config.ppo, family, params, opt_state, task, k, on_iteration=on_iteration,
                           context=context)
         new_state = PPOTLState(out.params, out.opt_state, rng, state.task_index + 1)
         return new_state, TaskMetrics(out.iterations, out.solved, out.metrics)
 
-    return Method("ppo_tl", config, family, init, learn_task)
+    return Method("ppo" if scratch else "ppo_tl", config, family, init, learn_task)
+
+
+def make_scratch(family: Family, config: PPOTLConfig = PPOTLConfig(), on_iteration=None,
+                 on_meta_step=None) -> Method:
+    """The method ``ppo``: single-task PPO from a random initialisation on every task (no transfer)."""
+    return make(family, config, on_iteration, on_meta_step, scratch=True)
