@@ -45,7 +45,7 @@ def run_sequence(method: Method, tasks, rng: jax.Array, progress: Optional[Progr
     return run_tasks(method, method.init(rng), tasks, progress, seed_index)
 
 
-def init_seeds(method: Method, rngs: jax.Array):
+def init_seeds(method: Method, rngs: jax.Array, hparams: Optional[dict] = None):
     """``method.init`` for each of the S keys ``rngs``, stacked (leading seed axis). Jittable.
 
     One seed at a time (``lax.map``), not under ``vmap``: a batched QR (the orthogonal initialisers) is jaxlib's
@@ -53,8 +53,14 @@ def init_seeds(method: Method, rngs: jax.Array):
     thread; several at once can occupy every pool thread and wait forever (seen with jax 0.10.2 on 2 host
     devices: gdb shows both "tf_XLAEigen" threads in ParallelBatchMap under QrFactorization; see
     ``jcomps.hostdevices``). Unbatched, the kernel runs inline; the values are the same.
+
+    With ``hparams`` (a dict of arrays with a leading axis of S, a hyperparameter grid's traced values per
+    member), ``method`` is instead a function of one member's dict of scalars that makes its Method, called
+    inside the map, so each member is initialised with its own values (``init_std``), still one at a time.
     """
-    return jax.lax.map(method.init, rngs)
+    if hparams is None:
+        return jax.lax.map(method.init, rngs)
+    return jax.lax.map(lambda x: method(x[1]).init(x[0]), (rngs, hparams))
 
 
 def run_seeds(method: Method, tasks, rngs: jax.Array, progress: Optional[ProgressFn] = None,
