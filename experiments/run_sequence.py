@@ -4,12 +4,15 @@
     python experiments/run_sequence.py --methods comps ppo_tl --sequence stationary --num-tasks 20 --seeds 6
     python experiments/run_sequence.py --family cheetah_vel --num-tasks 40 --seeds 6 --budget 500 --out runs/cheetah
     python experiments/run_sequence.py --out runs/cheetah --resume       # continue after a kill
+    python experiments/run_sequence.py --methods ppo_tl --grid learning_rate=0.01,0.005,0.001,0.0001 \
+        --grid init_std=0.3,0.5,0.7                                      # 12 grid points x 4 seeds, one program
 
 Every option is derived from a config dataclass (``RunConfig``, ``EvalConfig`` and the methods' configs);
 ``--help`` lists them. Seeds are a vmap axis sharded over the JAX devices (on CPU, ``--devices`` host devices
 let every core work). The run directory gets ``run.json``, checkpoints after every chunk of tasks,
 ``results.json``, ``plots/*.png`` and ``significance.md``; ``experiments/report.py DIR`` regenerates the last
-three. Bad options exit with code 2 and a message naming the option.
+three. ``--grid FIELD=V1,V2,...`` (repeatable) runs every method at every point of the product of the values, an
+axis like the seeds (see ``jcomps.grid``). Bad options exit with code 2 and a message naming the option.
 """
 
 from __future__ import annotations
@@ -57,6 +60,7 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 
 from jcomps import cli, continual, envs, experiment, methods, report  # noqa: E402
+from jcomps import grid as grids  # noqa: E402
 
 
 def parse_args(argv=None):
@@ -69,6 +73,12 @@ def parse_args(argv=None):
                              "up to a multiple of the devices used; the extra ones are not reported. On a GPU "
                              "machine the run uses the GPUs instead")
     parser.add_argument("--tensorboard", action="store_true", help="also write TensorBoard logs (tensorboardX)")
+    parser.add_argument("--grid", dest="grid_specs", action="append", default=None, metavar="FIELD=VALUES",
+                        help="a hyperparameter grid axis, VALUES comma-separated (repeat --grid for more axes; the "
+                             "run takes the product of the values × the seeds): any method config field, e.g. "
+                             "learning_rate=0.01,0.001 or hidden_sizes=128x64,64x32. Continuous hyperparameters run "
+                             "in one compiled program; fields that change shapes run one program per value. On "
+                             "--resume the stored grid is used (a different one is refused)")
     cli.add_config_args(parser, [experiment.RunConfig, continual.EvalConfig])
     cli.add_config_args(parser, [methods.config_class(m) for m in methods.METHODS])
     args = parser.parse_args(argv)
@@ -81,16 +91,36 @@ def parse_args(argv=None):
             _from_stored(args)
         else:
             _from_options(args)
+        _grid(args)
     except (ValueError, TypeError) as err:
         parser.error(str(err))
     available = len(envs.make(args.run.family).task_values)
     if args.run.num_tasks > available:
         parser.error(f"--num-tasks must be in [1, {available}] for {args.run.family}, got {args.run.num_tasks}")
     for name, config in args.configs.items():
-        if getattr(config, "max_tasks", args.run.num_tasks) < args.run.num_tasks:
-            parser.error(f"--max-tasks {config.max_tasks} is smaller than --num-tasks {args.run.num_tasks} ({name} "
-                         f"keeps one experience slot per task)")
+        for point in args.points[name]:
+            max_tasks = getattr(point.config, "max_tasks", args.run.num_tasks)
+            if max_tasks < args.run.num_tasks:
+                option = ("--grid max_tasks=" if any(a.field == "max_tasks" for a in args.grid) else "--max-tasks ")
+                parser.error(f"{option}{max_tasks} is smaller than --num-tasks {args.run.num_tasks} ({name} keeps "
+                             f"one experience slot per task)")
     return args
+
+
+def _grid(args):
+    """``args.grid`` from ``--grid`` (or, on --resume without it, the stored grid), checked: every field known to
+    a method of the run, not also given as a plain option, every value accepted by the configs (``args.points``:
+    every method's grid points, their configs built)."""
+    classes = {name: methods.config_class(name) for name in args.run.methods}
+    if args.grid_specs:
+        args.grid = grids.parse(args.grid_specs, classes)
+    else:
+        args.grid = grids.from_json(getattr(args, "stored", {}).get("grid"), classes)
+    for axis in args.grid:
+        if getattr(args, f"cfg_{axis.field}", None) is not None:
+            raise ValueError(f"--grid {axis.field}: also given as --{axis.field.replace('_', '-')}; give its values "
+                             f"on the grid only")
+    args.points = {name: grids.points(name, args.configs[name], args.grid) for name in args.run.methods}
 
 
 def _from_options(args):
@@ -112,6 +142,7 @@ def _from_stored(args):
         raise ValueError(f"--resume: {args.out} holds no run (no run.json); start it without --resume")
     with open(path) as f:
         stored = json.load(f)
+    args.stored = stored
     args.run = cli.config_from_dict(experiment.RunConfig, stored["run"], args)
     args.eval = cli.config_from_dict(continual.EvalConfig, stored["eval"], args)
     args.configs = {name: cli.config_from_dict(methods.config_class(name), stored["methods"].get(name, {}), args)
@@ -122,7 +153,7 @@ def main(argv=None):
     args = parse_args(argv)
     try:
         experiment.run(args.out, args.run, args.eval, args.configs, resume=args.resume, tensorboard=args.tensorboard,
-                       log=lambda line: print(line, flush=True))
+                       log=lambda line: print(line, flush=True), grid=args.grid)
         results = report.write(args.out)
     except experiment.RunError as err:
         print(f"error: {err}", file=sys.stderr)
@@ -130,10 +161,13 @@ def main(argv=None):
     print(f"\nmean iterations-to-success per task ({args.run.seeds} seeds):")
     for name, m in results["methods"].items():
         print(f"  {name:10s} {np.round(m['iterations_to_success_mean'], 1).tolist()}")
+    best = results.get("best", {m: m for m in results["methods"]})
+    if "best" in results:
+        print("best grid point per method: " + ", ".join(best.values()))
     half = args.run.num_tasks // 2
-    if "comps" in results["methods"] and half >= 1:
-        later = {n: float(np.mean(np.asarray(m["iterations_to_success"])[:, half:]))
-                 for n, m in results["methods"].items()}
+    if "comps" in best and half >= 1:
+        later = {n: float(np.mean(np.asarray(results["methods"][n]["iterations_to_success"])[:, half:]))
+                 for n in best.values()}
         print(f"mean over tasks {half + 1}-{args.run.num_tasks}: " +
               ", ".join(f"{n} {v:.1f}" for n, v in later.items()))
     print(open(os.path.join(args.out, "significance.md")).read())

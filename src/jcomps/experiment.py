@@ -2,17 +2,22 @@
 
 A run directory holds:
 
-- ``run.json``: everything that defines the run (run options, evaluation options, every method's config); a
-  resume must match it.
-- ``checkpoints/<method>/<step>/``: Orbax checkpoints of the method's entire state (parameters, optimiser
-  states, experience stores, rng, counters) and the metrics so far, written after every chunk of tasks.
-- ``raw/<method>.npz``: all metrics of a method once its sequence is done (the input of ``jcomps.report``).
+- ``run.json``: everything that defines the run (run options, evaluation options, every method's config, the
+  hyperparameter grid if any); a resume must match it.
+- ``checkpoints/<program>/<step>/``: Orbax checkpoints of a program's entire state (parameters, optimiser
+  states, experience stores, rng, counters) and the metrics so far, written after every chunk of tasks. A
+  program is a method (``checkpoints/<method>``), or with a grid one per combination of its shape-changing
+  values (``checkpoints/<method>@hidden_sizes=64x32``).
+- ``raw/<entry>.npz``: all metrics of a results entry (a method, or a method at a grid point) once its program
+  is done (the input of ``jcomps.report``).
 - ``results.json``, ``plots/*.png``, ``significance.md``: written by ``jcomps.report`` at the end.
 
-Per method there is one compiled chunk program: ``vmap`` over the seeds of a device, ``shard_map`` over devices
-(the seed axis), a ``lax.scan`` over ``chunk_tasks`` tasks. The host loops over chunks and checkpoints between
-them; since every chunk runs through the same program from the restored state, a resumed run gives per-task
-results identical to an uninterrupted one.
+Per program there is one compiled chunk program: ``vmap`` over the members of a device, ``shard_map`` over
+devices (the member axis), a ``lax.scan`` over ``chunk_tasks`` tasks. Members are the seeds, or with a grid
+(``jcomps.grid``) the program's grid points × the seeds, point-major; traced hyperparameters enter as one
+scalar per member, and the method is made inside the traced function from a config holding it. The host loops
+over chunks and checkpoints between them; since every chunk runs through the same program from the restored
+state, a resumed run gives per-task results identical to an uninterrupted one.
 """
 
 from __future__ import annotations
@@ -30,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import PartitionSpec as P
 
-from jcomps import continual, envs, methods
+from jcomps import continual, envs, grid as grids, methods
 from jcomps.ppo import check_field
 
 
@@ -78,12 +83,17 @@ def _jsonable(x):
     return x
 
 
-def describe(run: RunConfig, eval_config: continual.EvalConfig, method_configs: dict) -> dict:
+def describe(run: RunConfig, eval_config: continual.EvalConfig, method_configs: dict, grid=()) -> dict:
     """The JSON description of a run (``run.json``), with this process's device count: float rounding depends on
-    it, so a resume must use the same count (``experiments/run_sequence.py --resume`` takes it from here)."""
-    return {"run": _jsonable(run), "eval": _jsonable(eval_config),
-            "methods": {name: _jsonable(method_configs[name]) for name in run.methods},
-            "devices": jax.device_count()}
+    it, so a resume must use the same count (``experiments/run_sequence.py --resume`` takes it from here). With a
+    hyperparameter grid, ``grid`` holds its axes in order (``jcomps.grid.to_json``); without one there is no
+    ``grid`` key, as before grids existed."""
+    out = {"run": _jsonable(run), "eval": _jsonable(eval_config),
+           "methods": {name: _jsonable(method_configs[name]) for name in run.methods},
+           "devices": jax.device_count()}
+    if grid:
+        out["grid"] = grids.to_json(grid)
+    return out
 
 
 def _differences(a, b, prefix="") -> list[str]:
@@ -138,13 +148,18 @@ def _seed_keys(seeds: list[int], salt: int) -> jax.Array:
 
 
 class Progress:
-    """Host-side progress of one method: a status line at most every ``interval`` seconds, from the callbacks
-    of every RL iteration (method, task, iteration, success rate, elapsed, remaining) and of every outer update
-    of a meta-training phase (method, task, meta step, outer BC loss, elapsed, remaining)."""
+    """Host-side progress of one program: a status line at most every ``interval`` seconds, from the callbacks
+    of every RL iteration (program, task, iteration, success rate, elapsed, remaining) and of every outer update
+    of a meta-training phase (program, task, meta step, outer BC loss, elapsed, remaining).
+
+    ``members`` (a program of several grid points): each member's name (its grid point and seed); the line then
+    also names the member furthest behind, so one line per program says which grid point it waits for.
+    """
 
     def __init__(self, name: str, seeds: int, num_tasks: int, start_task: int, log: Callable[[str], None],
-                 interval: float = 10.0):
+                 interval: float = 10.0, members: Optional[list] = None):
         self.name, self.seeds, self.num_tasks, self.log, self.interval = name, seeds, num_tasks, log, interval
+        self.members = members
         self.start = time.time()
         self.start_task = start_task
         self.last = 0.0
@@ -164,8 +179,8 @@ class Progress:
         seed, task = (int(x) for x in context)
         self.meta_loss[seed] = float(loss)
         self._throttled(lambda: f"[{self.name}] task {task + 1}/{self.num_tasks} meta-training step {int(step)}/"
-                                f"{int(steps)} bc loss {float(np.nanmean(self.meta_loss)):.3f} | elapsed "
-                                f"{_clock(time.time() - self.start)} remaining {self._remaining_text()}")
+                                f"{int(steps)} bc loss {float(np.nanmean(self.meta_loss)):.3f}{self._behind()} | "
+                                f"elapsed {_clock(time.time() - self.start)} remaining {self._remaining_text()}")
 
     def _throttled(self, line: Callable[[], str]):
         now = time.time()
@@ -177,6 +192,12 @@ class Progress:
         remaining = self.remaining()
         return "?" if remaining is None else "~" + _clock(remaining)
 
+    def _behind(self) -> str:
+        if not self.members:
+            return ""
+        m = int(np.lexsort((self.iteration, self.task))[0])  # lowest task, then lowest iteration
+        return f" | behind: {self.members[m]} (task {int(self.task[m]) + 1})"
+
     def remaining(self) -> Optional[float]:
         done = float(np.mean(self.task)) - self.start_task
         if done <= 0:
@@ -187,8 +208,8 @@ class Progress:
         lo, hi = int(self.task.min()) + 1, int(self.task.max()) + 1
         tasks = f"{lo}" if lo == hi else f"{lo}-{hi}"
         return (f"[{self.name}] task {tasks}/{self.num_tasks} iteration {int(self.iteration.max())} success "
-                f"{float(self.success.mean()):.2f} | elapsed {_clock(time.time() - self.start)} remaining "
-                f"{self._remaining_text()}")
+                f"{float(self.success.mean()):.2f}{self._behind()} | elapsed {_clock(time.time() - self.start)} "
+                f"remaining {self._remaining_text()}")
 
 
 def _clock(seconds: float) -> str:
@@ -197,57 +218,97 @@ def _clock(seconds: float) -> str:
 
 
 class MethodProgram:
-    """The compiled programs of one method: init, one chunk of tasks, held-out adaptation; seeds sharded."""
+    """The compiled programs of one method: init, one chunk of tasks, held-out adaptation; members sharded.
 
-    def __init__(self, method, eval_config: continual.EvalConfig, chunk: int, devices: int):
-        self.method, self.chunk = method, chunk
+    ``make(hparams)`` makes the method from one member's dict of traced hyperparameters (empty without traced
+    grid axes); it runs inside each traced function, so every member learns, is initialised and is evaluated
+    with its own values. Every program takes ``hparams``, a dict of f32[members] arrays (default: none).
+    ``traces`` counts how often each program was traced (once each, however many chunks run).
+    """
+
+    def __init__(self, make: Callable[[dict], methods.Method], eval_config: continual.EvalConfig, chunk: int,
+                 devices: int):
+        self.make, self.chunk = make, chunk
+        self.traces: dict = {"init": 0, "run_chunk": 0, "heldout": 0}
         mesh = jax.make_mesh((devices,), ("seed",), devices=jax.devices()[:devices])
         seed = P("seed")
 
-        def run_chunk(states, sequences, start, eval_keys, seed_index):
-            fn = lambda s, q, k, i: continual.run_chunk(method, eval_config, s, q, start, chunk, k, i)  # noqa: E731
-            return jax.vmap(fn)(states, sequences, eval_keys, seed_index)
+        def run_chunk(states, sequences, start, eval_keys, seed_index, hparams):
+            self.traces["run_chunk"] += 1
+            fn = lambda s, q, k, i, h: continual.run_chunk(make(h), eval_config, s, q, start, chunk, k, i)  # noqa: E731
+            return jax.vmap(fn)(states, sequences, eval_keys, seed_index, hparams)
 
-        def heldout(states, tasks, keys):
-            return jax.vmap(lambda s, k: continual.heldout_adaptation(method, eval_config, s, tasks, k))(states, keys)
+        def heldout(states, tasks, keys, hparams):
+            self.traces["heldout"] += 1
+            return jax.vmap(lambda s, k, h: continual.heldout_adaptation(make(h), eval_config, s, tasks, k))(
+                states, keys, hparams)
+
+        def init(rngs, hparams):
+            self.traces["init"] += 1
+            if not hparams:
+                return continual.init_seeds(make({}), rngs)
+            return continual.init_seeds(make, rngs, hparams)
 
         shard = lambda f, specs: jax.jit(jax.shard_map(f, mesh=mesh, in_specs=specs, out_specs=seed,  # noqa: E731
                                                        check_vma=False))
-        # Initialisation runs on one device (seed by seed, see continual.init_seeds), then is split over them.
-        init = jax.jit(lambda rngs: continual.init_seeds(method, rngs))
-        self.init = lambda rngs: self.put(jax.device_get(init(jax.device_put(jax.device_get(rngs),
-                                                                              jax.devices()[0]))))
-        self.run_chunk = shard(run_chunk, (seed, seed, P(), seed, seed))
-        self.heldout = shard(heldout, (seed, P(), seed))
+        # Initialisation runs on one device (member by member, see continual.init_seeds), then is split over them.
+        self._init = jax.jit(init)
+        self._run_chunk = shard(run_chunk, (seed, seed, P(), seed, seed, seed))
+        self._heldout = shard(heldout, (seed, P(), seed, seed))
         self.sharding = jax.sharding.NamedSharding(mesh, seed)
 
+    def init(self, rngs, hparams: Optional[dict] = None):
+        """The initial states of the members (keys ``rngs``), placed on the devices."""
+        host = jax.device_put(jax.device_get((rngs, hparams or {})), jax.devices()[0])
+        return self.put(jax.device_get(self._init(*host)))
+
+    def run_chunk(self, states, sequences, start, eval_keys, seed_index, hparams: Optional[dict] = None):
+        return self._run_chunk(states, sequences, start, eval_keys, seed_index, hparams or {})
+
+    def heldout(self, states, tasks, keys, hparams: Optional[dict] = None):
+        return self._heldout(states, tasks, keys, hparams or {})
+
     def put(self, tree):
-        """Places host arrays with a leading seed axis on the devices, split along that axis."""
+        """Places host arrays with a leading member axis on the devices, split along that axis."""
         return jax.device_put(tree, self.sharding)
 
 
-# Compiled programs are kept per (method, family, config, evaluation, chunk, devices), so a resume or a second
-# run in the same process does not compile again; progress reaches the current run's Progress through _PROGRESS.
+class _Hooks:
+    """The progress hooks compiled into a program; ``progress`` is the current run's ``Progress`` (or None)."""
+
+    def __init__(self):
+        self.progress: Optional[Progress] = None
+
+    def on_iteration(self, context, iteration, success_rate, mean_return):
+        if self.progress is not None:
+            self.progress(context, iteration, success_rate, mean_return)
+
+    def on_meta_step(self, context, step, steps, loss):
+        if self.progress is not None:
+            self.progress.meta_step(context, step, steps, loss)
+
+
+# Compiled programs are kept per (method, family, config, traced fields, evaluation, chunk, devices), so a resume
+# or a second run in the same process does not compile again; progress reaches the current run's Progress
+# through the program's hooks.
 _PROGRAMS: dict = {}
-_PROGRESS: dict = {}
 
 
-def _program(name, family_name, config, eval_config, chunk, devices) -> MethodProgram:
-    key = (name, family_name, config, eval_config, chunk, devices)
+def _program(name, family_name, config, eval_config, chunk, devices, traced=()) -> MethodProgram:
+    """The programs of method ``name`` with ``config``; the fields in ``traced`` (a grid's traced axes) are read
+    per member from the programs' ``hparams`` argument instead of ``config``."""
+    key = (name, family_name, config, tuple(traced), eval_config, chunk, devices)
     if key not in _PROGRAMS:
-        def on_iteration(context, iteration, success_rate, mean_return):
-            hook = _PROGRESS.get(name)
-            if hook is not None:
-                hook(context, iteration, success_rate, mean_return)
+        hooks = _Hooks()
+        family = envs.make(family_name)
 
-        def on_meta_step(context, step, steps, loss):
-            hook = _PROGRESS.get(name)
-            if hook is not None:
-                hook.meta_step(context, step, steps, loss)
+        def make(hparams: dict) -> methods.Method:
+            cfg = grids.with_traced(config, hparams) if hparams else config
+            return methods.make(name, family, cfg, on_iteration=hooks.on_iteration, on_meta_step=hooks.on_meta_step)
 
-        method = methods.make(name, envs.make(family_name), config, on_iteration=on_iteration,
-                              on_meta_step=on_meta_step)
-        _PROGRAMS[key] = MethodProgram(method, eval_config, chunk, devices)
+        program = MethodProgram(make, eval_config, chunk, devices)
+        program.hooks = hooks
+        _PROGRAMS[key] = program
     return _PROGRAMS[key]
 
 
@@ -331,33 +392,69 @@ def _check_like(like: dict, got: dict):
 def run_method(out: str, name: str, run: RunConfig, eval_config: continual.EvalConfig, config, resume: bool,
                log: Callable[[str], None] = print, tensorboard: bool = False,
                stop_after_chunks: Optional[int] = None) -> Optional[dict]:
-    """Runs (or resumes) one method's sequence; returns its raw metrics (numpy) when the sequence is done.
+    """Runs (or resumes) one method's sequence, without a grid; returns its raw metrics (numpy) when the sequence
+    is done.
 
     ``stop_after_chunks`` (tests) returns None after that many chunks of this call, as if killed.
     """
-    family = envs.make(run.family)
-    devices = num_devices(run.seeds)
-    padded = padded_seeds(run.seeds, devices)
-    seeds = list(range(run.seed, run.seed + padded))
-    program = _program(name, run.family, config, eval_config, min(run.chunk_tasks, run.num_tasks), devices)
+    spec, = grids.programs(name, config, ())
+    raws = run_program(out, spec, run, eval_config, resume, log, tensorboard, stop_after_chunks)
+    return None if raws is None else raws[name]
 
-    values = np.stack([envs.sequence_values(family, run.sequence, s, run.num_tasks) for s in seeds])
+
+def members(spec: grids.ProgramSpec, seeds: int, first_seed: int, devices: int) -> tuple[list, list, dict]:
+    """The member layout of a program: (grid point index, seed) of every member, and the traced values
+    ({field: f32[members]}). Point-major: member ``p * seeds + s`` is point ``p`` with seed ``first_seed + s``;
+    padding members (up to a multiple of ``devices``) repeat point 0 with the next seeds, so without a grid the
+    members are the seeds exactly as before grids existed."""
+    real = len(spec.points) * seeds
+    padded = padded_seeds(real, devices)
+    point = [m // seeds for m in range(real)] + [0] * (padded - real)
+    extra = first_seed + seeds
+    seed = [first_seed + m % seeds for m in range(real)] + list(range(extra, extra + padded - real))
+    hparams = {f: np.asarray([dict(spec.points[p].values)[f] for p in point], np.float32) for f in spec.traced}
+    return point, seed, hparams
+
+
+def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: continual.EvalConfig, resume: bool,
+                log: Callable[[str], None] = print, tensorboard: bool = False,
+                stop_after_chunks: Optional[int] = None) -> Optional[dict]:
+    """Runs (or resumes) one program (``jcomps.grid.programs``): its grid points × the seeds as one compiled
+    chunk program; returns {entry key: raw metrics (numpy)} when the sequence is done.
+
+    Members are laid out by ``members``. A member uses its seed's keys and (stationary) task order, whatever its
+    grid point. ``stop_after_chunks`` (tests) returns None after that many chunks of this call, as if killed.
+    """
+    family = envs.make(run.family)
+    points = spec.points
+    real = len(points) * run.seeds
+    devices = num_devices(real)
+    member_point, member_seed, hparams_host = members(spec, run.seeds, run.seed, devices)
+    padded = len(member_seed)
+    program = _program(spec.method, run.family, spec.config, eval_config, min(run.chunk_tasks, run.num_tasks),
+                       devices, spec.traced)
+    hparams = program.put(hparams_host)
+    name = points[0].key if len(points) == 1 else f"{spec.label}, {len(points)} grid points"
+
+    orders = {s: envs.sequence_values(family, run.sequence, s, run.num_tasks) for s in sorted(set(member_seed))}
+    values = np.stack([orders[s] for s in member_seed])
     sequences = jax.tree.map(lambda x: x.reshape((padded, run.num_tasks) + x.shape[1:]),
                              family.tasks(values.reshape(-1)))
     sequences = program.put(sequences)
     heldout_tasks = envs.held_out(family)
     seed_index = program.put(np.arange(padded, dtype=np.int32))
-    eval_keys = program.put(_seed_keys(seeds, 1))
+    eval_keys = program.put(_seed_keys(member_seed, 1))
     num_chunks = math.ceil(run.num_tasks / program.chunk)
 
-    states = program.init(jax.vmap(jax.random.PRNGKey)(jnp.asarray(seeds)))
-    chunk_shapes = jax.eval_shape(program.run_chunk, states, sequences, jnp.int32(0), eval_keys, seed_index)[1]
-    heldout_shapes = jax.eval_shape(program.heldout, states, heldout_tasks, eval_keys)
-    # Host copies of every metric of the sequence, filled chunk by chunk: [seeds, num_tasks, ...].
+    states = program.init(jax.vmap(jax.random.PRNGKey)(jnp.asarray(member_seed)), hparams_host)
+    chunk_shapes = jax.eval_shape(program.run_chunk, states, sequences, jnp.int32(0), eval_keys, seed_index,
+                                  hparams)[1]
+    heldout_shapes = jax.eval_shape(program.heldout, states, heldout_tasks, eval_keys, hparams)
+    # Host copies of every metric of the sequence, filled chunk by chunk: [members, num_tasks, ...].
     per_task = jax.tree.map(lambda x: np.zeros((x.shape[0], run.num_tasks) + x.shape[2:], x.dtype), chunk_shapes)
     heldout = jax.tree.map(lambda x: np.zeros((x.shape[0], num_chunks + 1) + x.shape[1:], x.dtype), heldout_shapes)
 
-    checkpoints = Checkpoints(os.path.join(out, "checkpoints", name))
+    checkpoints = Checkpoints(os.path.join(out, "checkpoints", spec.directory))
     next_chunk, seconds = 0, 0.0
     if resume:
         restored = checkpoints.restore_latest(_record(states, per_task, heldout, 0, 0.0), log)
@@ -369,44 +466,55 @@ def run_method(out: str, name: str, run: RunConfig, eval_config: continual.EvalC
             next_chunk, seconds = int(tree["counters"]["next_chunk"]), float(tree["counters"]["seconds"])
             log(f"[{name}] resumed from checkpoint {step}: {min(next_chunk * program.chunk, run.num_tasks)}/"
                 f"{run.num_tasks} tasks done")
-    writer = _tensorboard(out, name) if tensorboard else None
+    writers = [_tensorboard(out, p.key) for p in points] if tensorboard else None
 
-    extra = f" (+{padded - run.seeds} to fill the devices, not reported)" if padded > run.seeds else ""
-    log(f"[{name}] {run.family} {run.sequence}, {run.num_tasks} tasks, {run.seeds} seeds{extra} on {devices} "
-        f"device(s), budget {config.ppo.budget_for(family)}, chunks of {program.chunk}; compiling...")
+    extra = f" (+{padded - real} to fill the devices, not reported)" if padded > real else ""
+    grid_text = f" × {len(points)} grid points = {real} members" if len(points) > 1 else ""
+    log(f"[{name}] {run.family} {run.sequence}, {run.num_tasks} tasks, {run.seeds} seeds{grid_text}{extra} on "
+        f"{devices} device(s), budget {spec.config.ppo.budget_for(family)}, chunks of {program.chunk}; compiling...")
     start_time = time.time()
     if next_chunk == 0:
-        out_h = program.heldout(states, heldout_tasks, program.put(_seed_keys(seeds, 1000)))
+        out_h = program.heldout(states, heldout_tasks, program.put(_seed_keys(member_seed, 1000)), hparams)
         jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), 0), np.asarray(src)), heldout, out_h)
-    _PROGRESS[name] = Progress(name, padded, run.num_tasks, next_chunk * program.chunk, log)
-    real = (slice(None, run.seeds),)  # the reported seeds
+    member_names = [f"{points[p].key} seed {s}" for p, s in zip(member_point, member_seed)]
+    program.hooks.progress = Progress(name, padded, run.num_tasks, next_chunk * program.chunk, log,
+                                      members=member_names if len(points) > 1 else None)
+    # The reported members of each point (padding members are dropped).
+    slices = [(slice(p * run.seeds, (p + 1) * run.seeds),) for p in range(len(points))]
+    seeds = list(range(run.seed, run.seed + run.seeds))
     chunks_run = 0
     for c in range(next_chunk, num_chunks):
         start = c * program.chunk
-        states, metrics = program.run_chunk(states, sequences, jnp.int32(start), eval_keys, seed_index)
+        states, metrics = program.run_chunk(states, sequences, jnp.int32(start), eval_keys, seed_index, hparams)
         metrics = jax.device_get(metrics)
         stop = min(start + program.chunk, run.num_tasks)
         jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), slice(start, stop)), src[:, :stop - start]),
                      per_task, metrics)
-        out_h = program.heldout(states, heldout_tasks, program.put(_seed_keys(seeds, 1001 + c)))
+        out_h = program.heldout(states, heldout_tasks, program.put(_seed_keys(member_seed, 1001 + c)), hparams)
         jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), c + 1), np.asarray(src)), heldout, out_h)
-        reported = jax.tree.map(lambda x: x[real], metrics)
-        _report_chunk(log, name, reported, start, stop, run.num_tasks)
-        _check_finite(log, name, seeds, reported.task.per_iteration.nonfinite, start)
-        if writer is not None:
-            _log_tensorboard(writer, jax.tree.map(lambda x: x[real], per_task), start, stop)
+        for p, point in enumerate(points):
+            reported = jax.tree.map(lambda x: x[slices[p]], metrics)
+            _report_chunk(log, point.key, reported, start, stop, run.num_tasks)
+            _check_finite(log, point.key, seeds, reported.task.per_iteration.nonfinite, start)
+            if writers is not None:
+                _log_tensorboard(writers[p], jax.tree.map(lambda x: x[slices[p]], per_task), start, stop)
         elapsed = seconds + time.time() - start_time
         checkpoints.save(c + 1, _record(states, per_task, heldout, c + 1, elapsed))
         chunks_run += 1
         if stop_after_chunks is not None and chunks_run >= stop_after_chunks and c + 1 < num_chunks:
+            program.hooks.progress = None
             return None
-    raw = {"per_task": jax.tree.map(lambda x: x[real], per_task), "heldout": jax.tree.map(lambda x: x[real], heldout),
-           "seconds": seconds + time.time() - start_time,
-           "devices": devices, "heldout_after_tasks": [min(c * program.chunk, run.num_tasks)
-                                                       for c in range(num_chunks + 1)]}
-    save_raw(out, name, raw)
-    log(f"[{name}] done in {_clock(raw['seconds'])}")
-    return raw
+    program.hooks.progress = None
+    total = seconds + time.time() - start_time
+    raws = {}
+    for p, point in enumerate(points):
+        raws[point.key] = {"per_task": jax.tree.map(lambda x: x[slices[p]], per_task),
+                           "heldout": jax.tree.map(lambda x: x[slices[p]], heldout), "seconds": total,
+                           "devices": devices, "heldout_after_tasks": [min(c * program.chunk, run.num_tasks)
+                                                                       for c in range(num_chunks + 1)]}
+        save_raw(out, point.key, raws[point.key])
+    log(f"[{name}] done in {_clock(total)}")
+    return raws
 
 
 def _report_chunk(log, name, metrics, start, stop, num_tasks):
@@ -450,7 +558,8 @@ def _log_tensorboard(writer, per_task, start, stop):
 
 
 def save_raw(out: str, name: str, raw: dict) -> None:
-    """Writes a finished method's metrics to ``raw/<name>.npz`` atomically."""
+    """Writes a finished results entry's metrics (a method, or a method at a grid point) to ``raw/<name>.npz``
+    atomically."""
     os.makedirs(os.path.join(out, "raw"), exist_ok=True)
     arrays = {"seconds": np.float64(raw["seconds"]), "devices": np.int64(raw["devices"]),
               "heldout_after_tasks": np.asarray(raw["heldout_after_tasks"], np.int64)}
@@ -466,7 +575,7 @@ def save_raw(out: str, name: str, raw: dict) -> None:
 
 
 def load_raw(out: str, name: str) -> Optional[dict]:
-    """A finished method's metrics, or None if it has not finished."""
+    """A finished results entry's metrics, or None if it has not finished."""
     path = os.path.join(out, "raw", f"{name}.npz")
     if not os.path.isfile(path):
         return None
@@ -478,16 +587,19 @@ def load_raw(out: str, name: str) -> Optional[dict]:
 
 
 def run(out: str, run_config: RunConfig, eval_config: continual.EvalConfig, method_configs: dict,
-        resume: bool = False, log: Callable[[str], None] = print, tensorboard: bool = False) -> dict:
-    """Runs every method of ``run_config`` into ``out`` (resuming where it stopped); returns raw metrics."""
-    open_run_dir(out, describe(run_config, eval_config, method_configs), resume)
+        resume: bool = False, log: Callable[[str], None] = print, tensorboard: bool = False,
+        grid: grids.Grid = ()) -> dict:
+    """Runs every method of ``run_config`` into ``out`` (resuming where it stopped), each at every point of the
+    hyperparameter ``grid`` (``jcomps.grid``; empty: no grid); returns raw metrics by results entry key."""
+    open_run_dir(out, describe(run_config, eval_config, method_configs, grid), resume)
     raws = {}
     for name in run_config.methods:
-        raw = load_raw(out, name) if resume else None
-        if raw is not None:
-            log(f"[{name}] already finished; skipping")
-        else:
-            run_method(out, name, run_config, eval_config, method_configs[name], resume, log, tensorboard)
-            raw = load_raw(out, name)
-        raws[name] = raw
+        for spec in grids.programs(name, method_configs[name], grid):
+            done = {p.key: load_raw(out, p.key) for p in spec.points} if resume else {}
+            if done and all(raw is not None for raw in done.values()):
+                log(f"[{spec.label}] already finished; skipping")
+            else:
+                run_program(out, spec, run_config, eval_config, resume, log, tensorboard)
+                done = {p.key: load_raw(out, p.key) for p in spec.points}
+            raws.update(done)
     return raws

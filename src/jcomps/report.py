@@ -15,6 +15,12 @@ Metrics (SPEC, "Metrics a user expects"):
 - significance of CoMPS against each other method on the per-seed mean iterations-to-success: a two-sided
   independent t-test, and the same test by bootstrap (30,000 resamples of the seeds under the null of equal
   means, Efron & Tibshirani 16.4).
+
+With a hyperparameter grid (``jcomps.grid``) there is one entry per method and grid point, keyed
+``METHOD[field=value,...]``, each with its ``grid`` values and an ``overall`` summary (mean iterations-to-success
+over tasks and seeds ± the standard error of the per-seed means, mean return); ``best`` names each method's best
+point (lowest mean iterations-to-success, ties broken by the higher mean return). The plots and the
+significance table use each method's best point, and ``significance.md`` adds a table of every grid point.
 """
 
 from __future__ import annotations
@@ -26,7 +32,8 @@ from typing import Optional
 
 import numpy as np
 
-from jcomps import experiment
+from jcomps import experiment, methods
+from jcomps import grid as grids
 
 BOOTSTRAP_SAMPLES = 30_000
 
@@ -108,12 +115,24 @@ def _json_float(x):
     return None if x is None or not np.isfinite(x) else float(x)
 
 
+def _entries(description: dict) -> list:
+    classes = {m: methods.config_class(m) for m in description["run"]["methods"]}
+    return grids.entries(description, classes)
+
+
+def _jsonable_value(v):
+    return list(v) if isinstance(v, tuple) else v
+
+
 def summarize(description: dict, raws: dict) -> dict:
-    """The content of ``results.json``."""
+    """The content of ``results.json`` (``raws``: {entry key: raw metrics})."""
     run = description["run"]
     seeds = list(range(run["seed"], run["seed"] + run["seeds"]))
     results = {"description": description, "seeds": seeds, "methods": {}}
-    for name, raw in raws.items():
+    entries = _entries(description)
+    overall_its, overall_ret = {}, {}
+    for method, name, values in entries:
+        raw = raws[name]
         its = raw["task.iterations"]
         valid = raw["iter.valid"]
         ret, succ = raw["iter.mean_return"], raw["iter.success_rate"]
@@ -121,7 +140,7 @@ def summarize(description: dict, raws: dict) -> dict:
         mean, se = _mean_se(its)
         bt = backward_transfer(raw)
         h_ret = raw["heldout_return"].mean(axis=2)  # [seeds, points, iterations + 1], averaged over tasks
-        results["methods"][name] = {
+        entry = results["methods"][name] = {
             "iterations_to_success": its.astype(int).tolist(),
             "iterations_to_success_mean": mean.round(3).tolist(),
             "iterations_to_success_se": se.round(3).tolist(),
@@ -140,12 +159,25 @@ def summarize(description: dict, raws: dict) -> dict:
             "seconds": float(raw["seconds"]),
             "devices": int(raw["devices"]),
         }
-    if "comps" in raws:
-        base = raws["comps"]["task.iterations"].mean(axis=1)
+        if values is not None:
+            seed_means = its.astype(np.float64).mean(axis=1)
+            m_its, se_its = _mean_se(seed_means)
+            overall_its[name], overall_ret[name] = float(its.mean()), float(per_task_return.mean())
+            entry.update({"method": method, "grid": {k: _jsonable_value(v) for k, v in values.items()},
+                          "overall": {"iterations_to_success_mean": _json_float(m_its),
+                                      "iterations_to_success_se": _json_float(se_its),
+                                      "mean_return": _json_float(overall_ret[name])}})
+    best = {m: m for m in run["methods"]}
+    if "grid" in description:
+        best = grids.best(entries, overall_its, overall_ret)
+        results["best"] = best
+    if "comps" in best:
+        base = raws[best["comps"]]["task.iterations"].mean(axis=1)
         results["significance"] = {
-            "statistic": "per-seed mean iterations-to-success over the sequence",
-            "against": {name: significance(base, raw["task.iterations"].mean(axis=1))
-                        for name, raw in raws.items() if name != "comps"}}
+            "statistic": "per-seed mean iterations-to-success over the sequence"
+                         + (", each method at its best grid point" if "grid" in description else ""),
+            "against": {best[m]: significance(base, raws[best[m]]["task.iterations"].mean(axis=1))
+                        for m in run["methods"] if m != "comps"}}
     return results
 
 
@@ -157,6 +189,10 @@ def _plots(results: dict, raws: dict, directory: str) -> list[str]:
     os.makedirs(directory, exist_ok=True)
     written = []
     title = "{family}, {sequence}, {seeds} seeds".format(**results["description"]["run"])
+    if "best" in results:  # a grid: each method's best point
+        title += ", best grid points"
+        results = {**results, "methods": {k: results["methods"][k] for k in results["best"].values()}}
+        raws = {k: raws[k] for k in results["best"].values()}
 
     def save(fig, name):
         path = os.path.join(directory, name)
@@ -241,6 +277,30 @@ def significance_table(results: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def grid_table(results: dict) -> str:
+    """Markdown table of every grid point: mean iterations-to-success ± s.e. and mean return, best marked."""
+    grid = results["description"].get("grid")
+    if not grid:
+        return ""
+    fields = [field for field, _ in grid]
+    best = set(results.get("best", {}).values())
+    seeds = len(results["seeds"])
+    fmt = lambda v: "n/a" if v is None else f"{v:.2f}"  # noqa: E731
+    lines = [f"Every grid point ({seeds} seeds each): iterations-to-success averaged over tasks and seeds ± the "
+             "standard error of the per-seed means, mean return over tasks and seeds; **best** is each method's "
+             "lowest mean iterations-to-success (ties: higher return), the point the plots and the table above "
+             "use.", "",
+             "| method | " + " | ".join(fields) + " | iterations-to-success | mean return | |",
+             "|---" * (len(fields) + 4) + "|"]
+    for name, m in results["methods"].items():
+        o = m.get("overall", {})
+        cells = [grids.format_value(m.get("grid", {})[f]) if f in m.get("grid", {}) else "–" for f in fields]
+        lines.append(f"| {m.get('method', name)} | " + " | ".join(cells) +
+                     f" | {fmt(o.get('iterations_to_success_mean'))} ± {fmt(o.get('iterations_to_success_se'))} | "
+                     f"{fmt(o.get('mean_return'))} | {'**best**' if name in best else ''} |")
+    return "\n".join(lines) + "\n"
+
+
 def write(out: str) -> Optional[dict]:
     """(Re)writes ``results.json``, the plots and ``significance.md`` of run directory ``out``."""
     run_json = os.path.join(out, "run.json")
@@ -249,14 +309,15 @@ def write(out: str) -> Optional[dict]:
     with open(run_json) as f:
         description = json.load(f)
     raws = {}
-    for name in description["run"]["methods"]:
+    for method, name, _ in _entries(description):
         raw = experiment.load_raw(out, name)
         if raw is None:
-            raise experiment.RunError(f"{out}: method {name} has not finished; continue the run with --resume")
+            raise experiment.RunError(f"{out}: {name} has not finished; continue the run with --resume")
         raws[name] = raw
     results = summarize(description, raws)
     results["plots"] = [os.path.relpath(p, out) for p in _plots(results, raws, os.path.join(out, "plots"))]
     experiment._write_json(os.path.join(out, "results.json"), results)
+    table = grid_table(results)
     with open(os.path.join(out, "significance.md"), "w") as f:
-        f.write(significance_table(results))
+        f.write(significance_table(results) + ("\n## Grid\n\n" + table if table else ""))
     return results
