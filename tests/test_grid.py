@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jcomps import envs, experiment, grid, methods
+from jcomps import continual, envs, experiment, grid, methods
 from jcomps.methods import comps, ppo_tl
 
 TINY = ["--budget", "3", "--num-trajectories", "2", "--num-updates", "1", "--minibatch-size", "16",
@@ -49,7 +49,8 @@ def plain_run(runner, tmp_path_factory):
 
 @pytest.mark.parametrize("argv,message", [
     (["--grid", "nope=1,2"], "--grid nope: unknown field"),
-    (["--methods", "ppo_tl", "--grid", "max_tasks=5,6"], "--grid max_tasks: unknown field; no method in --methods \\(ppo_tl\\)"),
+    (["--methods", "ppo_tl", "--grid", "max_tasks=5,6"],
+     "--grid max_tasks: unknown field; no method in --methods \\(ppo_tl\\)"),
     (["--grid", "learning_rate=-1,0.01"], "--grid learning_rate=-1.0: invalid config value learning_rate"),
     (["--grid", "init_std=0"], "--grid init_std=0.0: invalid"),
     (["--grid", "learning_rate="], "--grid learning_rate: empty list of values"),
@@ -79,7 +80,8 @@ def test_grid_points_keys_and_programs(runner):
                                                       "ppo_tl[learning_rate=0.001,discount=0.9]"]
     assert args.points["comps"][1].key == "comps[learning_rate=0.01,max_tasks=4,discount=0.9]"
     config = args.points["comps"][1].config  # a shared name sets every nested config that has it
-    assert (config.ppo.learning_rate, config.max_tasks, config.ppo.discount, config.meta.discount) == (0.01, 4, 0.9, 0.9)
+    assert (config.ppo.learning_rate, config.max_tasks) == (0.01, 4)
+    assert config.ppo.discount == config.meta.discount == 0.9
     specs = grid.programs("comps", args.configs["comps"], args.grid)
     # learning_rate (2 values) is traced; max_tasks changes shapes: one program per value; discount has one value.
     assert [(s.label, s.traced, len(s.points)) for s in specs] == [
@@ -96,13 +98,30 @@ def test_with_traced_builds_a_config_without_touching_the_original():
     assert base == comps.CoMPSConfig() and isinstance(config, comps.CoMPSConfig)
 
 
+def test_best_is_the_lowest_iterations_then_the_higher_return():
+    entries = [("m", "a", {}), ("m", "b", {}), ("m", "c", {}), ("n", "d", {}), ("n", "e", {})]
+    its = {"a": 5.0, "b": 3.0, "c": 3.0, "d": float("nan"), "e": 9.0}
+    returns = {"a": 0.0, "b": -2.0, "c": -1.0, "d": 0.0, "e": -5.0}
+    assert grid.best(entries, its, returns) == {"m": "c", "n": "e"}
+
+
+def test_progress_line_names_the_member_behind():
+    lines = []
+    progress = experiment.Progress("ppo_tl, 2 grid points", 2, 3, 0, lines.append, interval=0.0,
+                                   members=["ppo_tl[learning_rate=0.01] seed 0", "ppo_tl[learning_rate=0.001] seed 0"])
+    progress((0, 1), 2, 0.5, 0.0)
+    progress((1, 0), 3, 0.1, 0.0)
+    assert lines[-1].startswith("[ppo_tl, 2 grid points] task 1-2/3 iteration 3")
+    assert "behind: ppo_tl[learning_rate=0.001] seed 0 (task 1)" in lines[-1]
+
+
 @pytest.mark.parametrize("name", ["ppo_tl", "comps"])
 def test_every_traced_field_traces(name):
     """Every field a config declares TRACED can be a traced grid axis of the chunk and held-out programs (traced
     only, not compiled)."""
     config = methods.config_class(name)(**({"max_tasks": 2} if name == "comps" else {}))
     traced = tuple(sorted(grid.traced_fields(type(config))))
-    program = experiment._program(name, "point_goal", config, experiment.continual.EvalConfig(), 1, 1, traced)
+    program = experiment._program(name, "point_goal", config, continual.EvalConfig(), 1, 1, traced)
     abstract = lambda tree: jax.tree.map(  # noqa: E731
         lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=program.sharding), tree)
     values = {f: jnp.full((1,), 0.5, jnp.float32) for f in traced}
