@@ -128,7 +128,9 @@ def _from_options(args):
     args.eval = cli.build_config(continual.EvalConfig, args)
     args.configs = {}
     for name in args.run.methods:
-        config = cli.build_config(methods.config_class(name), args)
+        # The family's calibrated PPO settings are the base (jcomps.ppo.FAMILY_DEFAULTS); options override them.
+        base = methods.default_config(name, args.run.family)
+        config = cli.build_config(methods.config_class(name), args, base=base)
         if hasattr(config, "max_tasks") and args.cfg_max_tasks is None:
             config = dataclasses.replace(config, max_tasks=args.run.num_tasks)  # one slot per task, no more
         args.configs[name] = config

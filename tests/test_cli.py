@@ -1,5 +1,6 @@
 """Tests of the config-derived command line and the runner's entry point."""
 
+import dataclasses
 import pathlib
 
 from jcomps import cli, methods, ppo
@@ -18,12 +19,29 @@ def test_options_build_the_config(runner):
     args = runner.parse_args(["--learning-rate", "0.005", "--hidden-sizes", "64", "32", "--budget", "7",
                               "--reset-optimizer", "false", "--out", "/nonexistent/x"])
     config = args.configs["ppo_tl"]
-    assert config == ppo_tl.PPOTLConfig(ppo=ppo.PPOConfig(learning_rate=0.005, hidden_sizes=(64, 32), budget=7),
-                                        reset_optimizer=False)
+    assert config == ppo_tl.PPOTLConfig(ppo=ppo.family_config("point_goal", ppo.PPOConfig(
+        learning_rate=0.005, hidden_sizes=(64, 32), budget=7)), reset_optimizer=False)
 
 
-def test_defaults_are_the_dataclass_defaults(runner):
-    assert runner.parse_args(["--out", "/nonexistent/x"]).configs["ppo_tl"] == ppo_tl.PPOTLConfig()
+def test_defaults_are_the_family_defaults(runner):
+    for family in ("point_goal", "ant_goal"):
+        args = runner.parse_args(["--family", family, "--out", "/nonexistent/x"])
+        for name, config in args.configs.items():
+            expected = methods.default_config(name, family)
+            if hasattr(expected, "max_tasks"):  # the runner keeps one experience slot per task
+                expected = dataclasses.replace(expected, max_tasks=args.run.num_tasks)
+            assert config == expected, name
+
+
+def test_options_override_the_family_defaults(runner):
+    field, value = next(iter(ppo.FAMILY_DEFAULTS["ant_goal"].items()))
+    other = not value if isinstance(value, bool) else value * 2
+    flag = "--" + field.replace("_", "-")
+    args = runner.parse_args(["--family", "ant_goal", flag, str(other).lower(), "--out", "/nonexistent/x"])
+    assert getattr(args.configs["ppo_tl"].ppo, field) == other
+    for other_field, default in ppo.FAMILY_DEFAULTS["ant_goal"].items():
+        if other_field != field:
+            assert getattr(args.configs["ppo_tl"].ppo, other_field) == default
 
 
 def test_ci_runs_the_readme_test_command():

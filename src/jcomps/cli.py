@@ -77,17 +77,21 @@ def add_config_args(parser: argparse.ArgumentParser, classes) -> None:
                                metavar=name.upper(), help=f"{doc} (default: {shown})")
 
 
-def build_config(cls, args: argparse.Namespace):
-    """An instance of config dataclass ``cls`` with the options given on the command line, defaults elsewhere."""
+def build_config(cls, args: argparse.Namespace, base=None):
+    """An instance of config dataclass ``cls`` with the options given on the command line, and elsewhere the
+    values of ``base`` (an instance of ``cls``, e.g. a family's defaults) or, without it, the class defaults."""
     hints = typing.get_type_hints(cls)
     kwargs = {}
     for f in dataclasses.fields(cls):
+        inner = None if base is None else getattr(base, f.name)
         if dataclasses.is_dataclass(hints[f.name]):
-            kwargs[f.name] = build_config(hints[f.name], args)
+            kwargs[f.name] = build_config(type(inner) if inner is not None else hints[f.name], args, inner)
         else:
             value = getattr(args, f"cfg_{f.name}", None)
             if value is not None:
                 kwargs[f.name] = tuple(value) if isinstance(value, list) else value
+            elif base is not None:
+                kwargs[f.name] = inner
     return cls(**kwargs)
 
 

@@ -101,9 +101,9 @@ def check_field(ok: bool, field: str, value, allowed: str):
 FAMILY_DEFAULTS: dict[str, dict[str, Any]] = {
     # Observations are already positions of order 1 and the threshold was calibrated without normalisation.
     "point_goal": {"normalize_observations": False},
-    "cheetah_vel": {"reward_scale": 0.1},
-    "ant_goal": {"reward_scale": 0.1},
-    "ant_dir": {"reward_scale": 0.1},
+    "cheetah_vel": {"reward_scale": 0.1, "init_std": 0.15},
+    "ant_goal": {"reward_scale": 0.1, "init_std": 0.15},
+    "ant_dir": {"reward_scale": 0.1, "init_std": 0.15},
 }
 
 
