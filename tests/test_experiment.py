@@ -5,6 +5,7 @@ import os
 import re
 import shutil
 
+import jax
 import numpy as np
 import pytest
 
@@ -222,3 +223,21 @@ def test_two_host_devices_run_with_padded_seeds(tmp_path):
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 2
     assert "devices: run has 2, asked 1 (float rounding depends on it: resume with --devices 2)" in proc.stderr
+
+
+def test_checkpoint_round_trip_with_empty_metrics(tmp_path):
+    # --backward-tasks 0 makes the backward-transfer metrics zero-size arrays, which Orbax refuses to save: the
+    # checkpoint leaves them out and the restore rebuilds them from the run's own shapes.
+    states = {"w": np.arange(6, dtype=np.float32).reshape(2, 3)}
+    per_task = {"returns": np.ones((2, 4), np.float32), "backward": np.zeros((2, 4, 0), np.float32)}
+    heldout = (np.full((2, 1, 3), 0.5, np.float32),)
+    checkpoints = experiment.Checkpoints(str(tmp_path / "ckpt"))
+    checkpoints.save(1, experiment._record(states, per_task, heldout, 1, 2.5))
+    like = experiment._record(jax.tree.map(np.zeros_like, states), jax.tree.map(np.zeros_like, per_task),
+                              jax.tree.map(np.zeros_like, heldout), 0, 0.0)
+    step, tree = checkpoints.restore_latest(like, print)
+    assert step == 1 and int(tree["counters"]["next_chunk"]) == 1
+    restored = experiment._unflatten(per_task, tree["per_task"])
+    np.testing.assert_array_equal(restored["returns"], per_task["returns"])
+    assert restored["backward"].shape == (2, 4, 0)
+    np.testing.assert_array_equal(experiment._unflatten(states, tree["states"])["w"], states["w"])

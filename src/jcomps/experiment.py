@@ -313,13 +313,16 @@ def _program(name, family_name, config, eval_config, chunk, devices, traced=()) 
 
 
 def _flatten(tree) -> dict:
-    return {f"{i:05d}": np.asarray(x) for i, x in enumerate(jax.tree.leaves(tree))}
+    """The leaves of ``tree`` by index; empty arrays (e.g. backward transfer with ``--backward-tasks 0``) hold
+    nothing and are left out, since Orbax refuses to save zero-size arrays."""
+    return {f"{i:05d}": np.asarray(x) for i, x in enumerate(jax.tree.leaves(tree)) if np.size(x) > 0}
 
 
 def _unflatten(like, flat: dict):
     """The inverse of ``_flatten`` (``flat`` checked against ``like`` by ``Checkpoints.restore_latest``)."""
     leaves, treedef = jax.tree.flatten(like)
-    return jax.tree.unflatten(treedef, [flat[f"{i:05d}"] for i in range(len(leaves))])
+    return jax.tree.unflatten(treedef, [flat[f"{i:05d}"] if np.size(x) > 0 else np.zeros(np.shape(x), x.dtype)
+                                        for i, x in enumerate(leaves)])
 
 
 def _record(states, per_task, heldout, next_chunk: int, seconds: float) -> dict:
