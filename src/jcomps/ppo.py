@@ -102,7 +102,7 @@ FAMILY_DEFAULTS: dict[str, dict[str, Any]] = {
     # Observations are already positions of order 1 and the threshold was calibrated without normalisation.
     "point_goal": {"normalize_observations": False},
     "cheetah_vel": {"reward_scale": 0.1, "init_std": 0.15},
-    "ant_goal": {"reward_scale": 0.1, "init_std": 0.15},
+    "ant_goal": {"reward_scale": 0.1, "init_std": 0.1},
     "ant_dir": {"reward_scale": 0.1, "init_std": 0.15},
 }
 
