@@ -208,3 +208,19 @@ def test_family_defaults_are_valid_configs():
         for name in methods.METHODS:
             assert methods.default_config(name, family).ppo == config
     assert not ppo.family_config("point_goal").normalize_observations
+
+
+def test_method_ppo_starts_every_task_afresh(point):
+    # ``ppo`` re-initialises before each task (same draws as a fresh init), ``ppo_tl`` carries the parameters.
+    from jcomps import methods
+
+    config = methods.config_class("ppo")(ppo=dataclasses.replace(SMALL, budget=2))
+    task = envs.task_at(point, 0)
+    for name, carried in (("ppo", False), ("ppo_tl", True)):
+        method = methods.make(name, point, config)
+        state = method.init(jax.random.PRNGKey(0))
+        trained, _ = jax.jit(method.learn_task)(state, task)
+        again, _ = jax.jit(method.learn_task)(trained._replace(rng=state.rng), task)
+        leaves = zip(jax.tree.leaves(again.params), jax.tree.leaves(trained.params))
+        same = all(np.array_equal(a, b) for a, b in leaves)
+        assert same != carried, name

@@ -84,8 +84,6 @@ def obs_norm_update(norm: ObsNorm, obs: jax.Array, mask: jax.Array) -> ObsNorm:
     frac = n / jnp.maximum(total, 1.0)
     mean = norm.mean + delta * frac
     var = (norm.var * norm.count + batch_var * n + jnp.square(delta) * norm.count * frac) / jnp.maximum(total, 1.0)
-    fresh = norm.count <= 0
-    var = jnp.where(fresh, batch_var, var)
     keep = n <= 0
     return ObsNorm(jnp.where(keep, norm.mean, mean), jnp.where(keep, norm.var, var), total)
 
