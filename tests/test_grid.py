@@ -115,6 +115,18 @@ def test_progress_line_names_the_member_behind():
     assert "behind: ppo_tl[learning_rate=0.001] seed 0 (task 1)" in lines[-1]
 
 
+def test_progress_behind_is_the_member_still_iterating():
+    """A member that solved its task keeps reporting the iteration it stopped at; the one still running is named."""
+    lines = []
+    progress = experiment.Progress("ppo, 2 grid points", 2, 3, 0, lines.append, interval=0.0,
+                                   members=["ppo[learning_rate=0.0003] seed 0", "ppo[learning_rate=0.0001] seed 0"])
+    for it in range(1, 41):
+        progress((0, 0), min(it, 5), 0.3, 0.0)  # solved at iteration 5, frozen there
+        progress((1, 0), it, 0.1, 0.0)
+    assert "iteration 40" in lines[-1]
+    assert "behind: ppo[learning_rate=0.0001] seed 0 (task 1)" in lines[-1]
+
+
 @pytest.mark.parametrize("name", ["ppo_tl", "comps"])
 def test_every_traced_field_traces(name):
     """Every field a config declares TRACED can be a traced grid axis of the chunk and held-out programs (traced

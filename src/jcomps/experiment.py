@@ -195,7 +195,10 @@ class Progress:
     def _behind(self) -> str:
         if not self.members:
             return ""
-        m = int(np.lexsort((self.iteration, self.task))[0])  # lowest task, then lowest iteration
+        # The lowest task, then the highest iteration: a member that reached the threshold keeps reporting the
+        # iteration it stopped at while the vmapped loop waits for the others, so the one still iterating on the
+        # lowest task has counted furthest.
+        m = int(np.lexsort((-self.iteration, self.task))[0])
         return f" | behind: {self.members[m]} (task {int(self.task[m]) + 1})"
 
     def remaining(self) -> Optional[float]:
