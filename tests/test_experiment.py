@@ -241,3 +241,30 @@ def test_checkpoint_round_trip_with_empty_metrics(tmp_path):
     np.testing.assert_array_equal(restored["returns"], per_task["returns"])
     assert restored["backward"].shape == (2, 4, 0)
     np.testing.assert_array_equal(experiment._unflatten(states, tree["states"])["w"], states["w"])
+
+
+def _keys_drawn_from(key) -> set:
+    """Keys a method can draw from its root ``key`` in the first two generations of split/fold_in."""
+    out = set()
+    for k in [key]:
+        for n in range(1, 6):
+            for child in jax.random.split(k, n):
+                out.add(tuple(np.asarray(child).tolist()))
+                out.update(tuple(np.asarray(g).tolist()) for g in jax.random.split(child, 4))
+        out.update(tuple(np.asarray(jax.random.fold_in(k, i)).tolist()) for i in range(16))
+    return out | {tuple(np.asarray(key).tolist())}
+
+
+def test_evaluation_keys_never_equal_a_key_the_method_draws():
+    seeds = [0, 1, 2]
+    eval_keys = [experiment.eval_keys(seeds, p) for p in [1, 1000, 1001, 1002, 1003]]
+    for s, method_key in enumerate(experiment.method_keys(seeds)):
+        drawn = _keys_drawn_from(method_key)
+        evaluations = {tuple(np.asarray(k[s]).tolist()) for k in eval_keys}
+        # The backward-transfer keys are folded further per task and per previous task (continual.run_chunk).
+        evaluations |= {tuple(np.asarray(jax.random.fold_in(jax.random.fold_in(eval_keys[0][s], i), d)).tolist())
+                        for i in range(4) for d in range(3)}
+        assert not drawn & evaluations
+    # The derivation this replaces (evaluation keys folded from the method's own root) collides: the check bites.
+    root = jax.random.PRNGKey(0)
+    assert tuple(np.asarray(jax.random.fold_in(root, 1)).tolist()) in _keys_drawn_from(root)

@@ -7,6 +7,7 @@ import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 
 from jcomps import buffers, meta, networks
@@ -165,8 +166,58 @@ def test_slot_sampling_does_not_depend_on_other_slots():
     chex.assert_trees_all_equal(jax.tree.map(lambda x: x[1], all_slots), jax.tree.map(lambda x: x[0], one))
 
 
+def _meta_state(policy, value, config):
+    p_opt, v_opt = meta.optimizers(config)
+    return meta.MetaState(policy, value, p_opt.init(policy), v_opt.init(value))
+
+
+def test_sequential_outer_update_with_one_task_equals_the_mean():
+    # One seen task: the mean over tasks is that task, and both readings draw the same batches per outer step.
+    stores = _stores(8)._replace(task_valid=np.array([True, False, False]))
+    policy, value = _params()
+    config = dataclasses.replace(CONFIG, num_meta_steps=3, num_outer_steps=2)
+    state = _meta_state(policy, value, config)
+    run = lambda c: jax.jit(lambda s: meta.meta_train(c, s, stores, jax.random.PRNGKey(9)))(state)  # noqa: E731
+    chex.assert_trees_all_close(run(config), run(dataclasses.replace(config, outer_update="sequential")),
+                                rtol=1e-5, atol=1e-6)
+
+
+def test_sequential_outer_update_follows_algorithm_1():
+    # Per meta step n: task j = 0, 1 in order, K Adam steps on task j alone, step (n, k) drawing task j's batches
+    # from the n·K + k-th key. A Python loop of single-task steps is the reference.
+    stores = _stores(9)._replace(task_valid=np.array([True, True, False]))
+    policy, value = _params()
+    config = dataclasses.replace(CONFIG, num_meta_steps=2, num_outer_steps=2, outer_update="sequential")
+    state = _meta_state(policy, value, config)
+    calls = []
+    hook = lambda context, step, steps, loss: calls.append((int(step), int(steps)))  # noqa: E731
+    new, losses = jax.jit(lambda s: meta.meta_train(config, s, stores, jax.random.PRNGKey(4), on_step=hook))(state)
+    jax.effects_barrier()
+    p_opt, v_opt = meta.optimizers(config)
+    keys = jax.random.split(jax.random.PRNGKey(4), 4).reshape(2, 2, -1)
+    ref, ref_losses = state, np.zeros((2, 2))
+    grad = jax.jit(lambda p, v, k, j: meta.slot_gradients(config, p, v, stores, k, j))
+    for n in range(2):
+        for j in range(2):
+            for k in range(2):
+                loss, g, vg = grad(ref.policy, ref.value, keys[n, k], j)
+                up, popt = p_opt.update(g, ref.policy_opt, ref.policy)
+                vup, vopt = v_opt.update(vg, ref.value_opt, ref.value)
+                ref = meta.MetaState(optax.apply_updates(ref.policy, up), optax.apply_updates(ref.value, vup), popt,
+                                     vopt)
+                ref_losses[n, k] += float(loss) / 2
+    chex.assert_trees_all_close(new, ref, rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(losses, ref_losses.reshape(-1), rtol=1e-5)
+    # It differs from the mean reading (θ moves between tasks), and reports once per meta step.
+    mean = jax.jit(lambda s: meta.meta_train(dataclasses.replace(config, outer_update="mean"), s, stores,
+                                             jax.random.PRNGKey(4)))(state)[0]
+    assert float(jnp.max(jnp.abs(mean.policy["mean"][0]["w"] - new.policy["mean"][0]["w"]))) > 1e-4
+    assert sorted(calls) == [(2, 4), (4, 4)]
+
+
 @pytest.mark.parametrize("field,value", [("inner_learning_rate", 0.0), ("num_meta_steps", -1),
-                                         ("inner_trajectories", 0), ("discount", 0.0), ("task_chunk", -1)])
+                                         ("inner_trajectories", 0), ("discount", 0.0), ("task_chunk", -1),
+                                         ("outer_update", "average")])
 def test_bad_meta_config_names_the_field(field, value):
     with pytest.raises(ValueError, match=field):
         meta.MetaConfig(**{field: value})

@@ -143,8 +143,21 @@ def padded_seeds(seeds: int, devices: int) -> int:
     return -(-seeds // devices) * devices
 
 
-def _seed_keys(seeds: list[int], salt: int) -> jax.Array:
-    return jax.vmap(lambda s: jax.random.fold_in(jax.random.PRNGKey(s), salt))(jnp.asarray(seeds, jnp.uint32))
+# The method's and the evaluations' random streams come from separately salted roots of each seed's key. With
+# jax's partitionable threefry ``fold_in(k, 1)`` equals ``split(k)[1]``, so evaluation keys folded from the
+# method's own root could coincide with keys the method draws.
+METHOD_SALT, EVAL_SALT = 0x6D657468, 0x6576616C  # "meth", "eval"
+
+
+def method_keys(seeds: list[int]) -> jax.Array:
+    """Each seed's key for ``method.init`` (everything the method draws descends from it)."""
+    return jax.vmap(lambda s: jax.random.fold_in(jax.random.PRNGKey(s), METHOD_SALT))(jnp.asarray(seeds, jnp.uint32))
+
+
+def eval_keys(seeds: list[int], purpose: int) -> jax.Array:
+    """Each seed's key for the evaluation ``purpose`` (1: backward transfer; 1000 + c: held-out after chunk c)."""
+    return jax.vmap(lambda s: jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(s), EVAL_SALT), purpose))(
+        jnp.asarray(seeds, jnp.uint32))
 
 
 class Progress:
@@ -449,13 +462,13 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
     sequences = program.put(sequences)
     heldout_tasks = envs.held_out(family)
     seed_index = program.put(np.arange(padded, dtype=np.int32))
-    eval_keys = program.put(_seed_keys(member_seed, 1))
+    backward_keys = program.put(eval_keys(member_seed, 1))
     num_chunks = math.ceil(run.num_tasks / program.chunk)
 
-    states = program.init(jax.vmap(jax.random.PRNGKey)(jnp.asarray(member_seed)), hparams_host)
-    chunk_shapes = jax.eval_shape(program.run_chunk, states, sequences, jnp.int32(0), eval_keys, seed_index,
+    states = program.init(method_keys(member_seed), hparams_host)
+    chunk_shapes = jax.eval_shape(program.run_chunk, states, sequences, jnp.int32(0), backward_keys, seed_index,
                                   hparams)[1]
-    heldout_shapes = jax.eval_shape(program.heldout, states, heldout_tasks, eval_keys, hparams)
+    heldout_shapes = jax.eval_shape(program.heldout, states, heldout_tasks, backward_keys, hparams)
     # Host copies of every metric of the sequence, filled chunk by chunk: [members, num_tasks, ...].
     per_task = jax.tree.map(lambda x: np.zeros((x.shape[0], run.num_tasks) + x.shape[2:], x.dtype), chunk_shapes)
     heldout = jax.tree.map(lambda x: np.zeros((x.shape[0], num_chunks + 1) + x.shape[1:], x.dtype), heldout_shapes)
@@ -480,7 +493,7 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
         f"{devices} device(s), budget {spec.config.ppo.budget_for(family)}, chunks of {program.chunk}; compiling...")
     start_time = time.time()
     if next_chunk == 0:
-        out_h = program.heldout(states, heldout_tasks, program.put(_seed_keys(member_seed, 1000)), hparams)
+        out_h = program.heldout(states, heldout_tasks, program.put(eval_keys(member_seed, 1000)), hparams)
         jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), 0), np.asarray(src)), heldout, out_h)
     member_names = [f"{points[p].key} seed {s}" for p, s in zip(member_point, member_seed)]
     program.hooks.progress = Progress(name, padded, run.num_tasks, next_chunk * program.chunk, log,
@@ -491,12 +504,12 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
     chunks_run = 0
     for c in range(next_chunk, num_chunks):
         start = c * program.chunk
-        states, metrics = program.run_chunk(states, sequences, jnp.int32(start), eval_keys, seed_index, hparams)
+        states, metrics = program.run_chunk(states, sequences, jnp.int32(start), backward_keys, seed_index, hparams)
         metrics = jax.device_get(metrics)
         stop = min(start + program.chunk, run.num_tasks)
         jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), slice(start, stop)), src[:, :stop - start]),
                      per_task, metrics)
-        out_h = program.heldout(states, heldout_tasks, program.put(_seed_keys(member_seed, 1001 + c)), hparams)
+        out_h = program.heldout(states, heldout_tasks, program.put(eval_keys(member_seed, 1001 + c)), hparams)
         jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), c + 1), np.asarray(src)), heldout, out_h)
         for p, point in enumerate(points):
             reported = jax.tree.map(lambda x: x[slices[p]], metrics)

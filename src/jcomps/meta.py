@@ -58,6 +58,10 @@ class MetaConfig:
     """Stop the gradient through the inner step (first-order approximation)."""
     task_chunk: int = 0
     """Task slots computed in parallel per loop iteration of the meta step; 0: 1 on CPU, 8 on accelerators."""
+    outer_update: str = "mean"
+    """How θ is updated: ``mean``, one Adam step on the mean over seen tasks per outer step; ``sequential``,
+    Algorithm 1 read literally: per meta step, task after task (newest last), ``num_outer_steps`` Adam steps on
+    that task alone. Both make the same number of per-task gradient evaluations (docs/design.md)."""
 
     TRACED: ClassVar[frozenset] = frozenset({
         "outer_learning_rate", "inner_learning_rate", "value_learning_rate", "discount", "rho_bar", "c_bar",
@@ -74,6 +78,10 @@ class MetaConfig:
         for name in ("inner_trajectories", "skilled_trajectories"):
             check_field(getattr(self, name) >= 1, name, getattr(self, name), "an integer >= 1")
         check_field(0 < self.discount <= 1, "discount", self.discount, "a number in (0, 1]")
+        check_field(self.outer_update in OUTER_UPDATES, "outer_update", self.outer_update, ", ".join(OUTER_UPDATES))
+
+
+OUTER_UPDATES = ("mean", "sequential")
 
 
 class TaskBatch(NamedTuple):
@@ -256,26 +264,79 @@ def optimizers(config: MetaConfig):
 MetaStepHook = Callable[[Any, jax.Array, jax.Array, jax.Array], None]
 
 
+def slot_gradients(config: MetaConfig, policy, value, stores: buffers.SequenceStores, rng, slot):
+    """(L_BC, ∇_policy, ∇_value) of task slot ``slot`` alone, its batches drawn as ``meta_gradients`` draws them
+    (``fold_in(rng, slot)``): the per-task gradient of the ``sequential`` outer update."""
+    batch = jax.tree.map(lambda x: x[0], _slot_batches(config, stores, rng, jnp.reshape(slot, (1,))))
+    grads, (bc, _) = jax.grad(slot_objective, argnums=(1, 2), has_aux=True)(config, policy, value, slot, batch)
+    return bc, grads[0], grads[1]
+
+
 def meta_train(config: MetaConfig, state: MetaState, stores: buffers.SequenceStores, rng,
                on_step: Optional[MetaStepHook] = None, context: Any = ()):
-    """``num_meta_steps`` × ``num_outer_steps`` outer updates; returns (state, outer losses f32[steps]).
+    """``num_meta_steps`` × ``num_outer_steps`` outer steps over the seen tasks; returns (state, outer losses
+    f32[steps]: the mean BC loss over the seen tasks at each step, NaN where an update was skipped).
+
+    ``outer_update="mean"``: each outer step is one Adam step on the mean over seen tasks. ``"sequential"``
+    (Algorithm 1): each meta step visits the seen tasks in order and makes ``num_outer_steps`` Adam steps on each
+    task alone. Outer step (n, k) draws task j's batches from the same key in both, so the readings differ only
+    in when θ moves. An update whose loss or gradient is not finite is skipped.
 
     ``on_step(context, step, steps, loss)``, if given, is a host function called through ``jax.debug.callback``
-    after every outer update (progress reports: meta-training a long sequence takes minutes on a CPU).
+    (progress reports: meta-training a long sequence takes minutes on a CPU): after every outer step (mean), or
+    after every meta step with ``step`` counted in outer steps (sequential).
     """
     policy_opt, value_opt = optimizers(config)
     steps = config.num_meta_steps * config.num_outer_steps
+    keys = jax.random.split(rng, steps)
 
-    def outer(state: MetaState, xs):
-        key, step = xs
-        loss, g, vg = meta_gradients(config, state.policy, state.value, stores, key)
-        if on_step is not None:
-            jax.debug.callback(on_step, context, step + 1, jnp.int32(steps), loss)
+    def apply(state: MetaState, loss, g, vg):
         finite = all_finite((loss, g, vg))
         up, popt = policy_opt.update(g, state.policy_opt, state.policy)
         vup, vopt = value_opt.update(vg, state.value_opt, state.value)
         new = MetaState(optax.apply_updates(state.policy, up), optax.apply_updates(state.value, vup), popt, vopt)
-        new = jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, state)
-        return new, jnp.where(finite, loss, jnp.nan)
+        return jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, state), finite
 
-    return jax.lax.scan(outer, state, (jax.random.split(rng, steps), jnp.arange(steps, dtype=jnp.int32)))
+    def report(step, loss):
+        if on_step is not None:
+            jax.debug.callback(on_step, context, step, jnp.int32(steps), loss)
+
+    if config.outer_update == "mean":
+        def outer(state: MetaState, xs):
+            key, step = xs
+            loss, g, vg = meta_gradients(config, state.policy, state.value, stores, key)
+            report(step + 1, loss)
+            state, finite = apply(state, loss, g, vg)
+            return state, jnp.where(finite, loss, jnp.nan)
+
+        return jax.lax.scan(outer, state, (keys, jnp.arange(steps, dtype=jnp.int32)))
+
+    task_valid = jnp.asarray(stores.task_valid)
+    num_slots = task_valid.shape[0]
+    end = jnp.max(jnp.where(task_valid, jnp.arange(1, num_slots + 1), 0))
+    count = jnp.maximum(jnp.sum(task_valid.astype(jnp.float32)), 1.0)
+
+    def meta_step(state: MetaState, xs):
+        step_keys, n = xs  # step_keys: [num_outer_steps] keys of outer steps (n, 0 ... K-1)
+
+        def task(j, carry):
+            state, total = carry
+
+            def one(state, key):
+                loss, g, vg = slot_gradients(config, state.policy, state.value, stores, key, j)
+                new, finite = apply(state, loss, g, vg)
+                new = jax.tree.map(lambda a, b: jnp.where(task_valid[j], a, b), new, state)
+                return new, jnp.where(finite, loss, jnp.nan)
+
+            state, losses = jax.lax.scan(one, state, step_keys)
+            return state, total + jnp.where(task_valid[j], losses, 0.0)
+
+        state, total = jax.lax.fori_loop(0, end, task, (state, jnp.zeros((config.num_outer_steps,), jnp.float32)))
+        losses = total / count
+        report((n + 1) * config.num_outer_steps, losses[-1])
+        return state, losses
+
+    xs = (keys.reshape((config.num_meta_steps, config.num_outer_steps) + keys.shape[1:]),
+          jnp.arange(config.num_meta_steps, dtype=jnp.int32))
+    state, losses = jax.lax.scan(meta_step, state, xs)
+    return state, losses.reshape(-1)
