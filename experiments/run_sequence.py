@@ -79,6 +79,11 @@ def parse_args(argv=None):
                              "learning_rate=0.01,0.001 or hidden_sizes=128x64,64x32. Continuous hyperparameters run "
                              "in one compiled program; fields that change shapes run one program per value. On "
                              "--resume the stored grid is used (a different one is refused)")
+    parser.add_argument("--set", dest="set_specs", action="append", default=None, metavar="METHOD.FIELD=VALUE",
+                        help="change one method's config alone, by the field's full path (repeatable), e.g. --set "
+                             "gmps_ppo_is.meta.inner_learning_rate=0.01 or --set comps.ppo.hidden_sizes=64x32; wins "
+                             "over the shared options, recorded in run.json (on --resume the stored ones are used; "
+                             "different ones are refused)")
     cli.add_config_args(parser, [experiment.RunConfig, continual.EvalConfig])
     cli.add_config_args(parser, [methods.config_class(m) for m in methods.METHODS])
     args = parser.parse_args(argv)
@@ -120,20 +125,26 @@ def _grid(args):
         if getattr(args, f"cfg_{axis.field}", None) is not None:
             raise ValueError(f"--grid {axis.field}: also given as --{axis.field.replace('_', '-')}; give its values "
                              f"on the grid only")
+        for method, values in args.overrides.items():
+            if any(key.split(".")[-1] == axis.field for key in values):
+                raise ValueError(f"--grid {axis.field}: also given by --set for {method}; give its values on the "
+                                 f"grid only")
     args.points = {name: grids.points(name, args.configs[name], args.grid) for name in args.run.methods}
 
 
 def _from_options(args):
     args.run = cli.build_config(experiment.RunConfig, args)
     args.eval = cli.build_config(continual.EvalConfig, args)
-    args.configs = {}
+    configs = {}
     for name in args.run.methods:
-        # The family's calibrated PPO settings are the base (jcomps.ppo.FAMILY_DEFAULTS); options override them.
-        base = methods.default_config(name, args.run.family)
-        config = cli.build_config(methods.config_class(name), args, base=base)
+        # The method's registered default on the family is the base (with the family's calibrated PPO settings,
+        # jcomps.ppo.FAMILY_DEFAULTS); the shared options override it, then --set overrides one method alone.
+        config = cli.build_config(methods.config_class(name), args, base=methods.default_config(name, args.run.family))
         if hasattr(config, "max_tasks") and args.cfg_max_tasks is None:
             config = dataclasses.replace(config, max_tasks=args.run.num_tasks)  # one slot per task, no more
-        args.configs[name] = config
+        configs[name] = config
+    args.overrides = cli.parse_overrides(args.set_specs, configs)
+    args.configs = cli.apply_overrides(configs, args.overrides)
     args.out = args.out or os.path.join("runs", f"{args.run.family}-{time.strftime('%Y%m%d-%H%M%S')}")
 
 
@@ -145,17 +156,24 @@ def _from_stored(args):
     with open(path) as f:
         stored = json.load(f)
     args.stored = stored
-    args.run = cli.config_from_dict(experiment.RunConfig, stored["run"], args)
-    args.eval = cli.config_from_dict(continual.EvalConfig, stored["eval"], args)
-    args.configs = {name: cli.config_from_dict(methods.config_class(name), stored["methods"].get(name, {}), args)
-                    for name in args.run.methods}
+    args.run = cli.config_from_dict(experiment.RunConfig(), stored["run"], args)
+    args.eval = cli.config_from_dict(continual.EvalConfig(), stored["eval"], args)
+    # Each method starts from its registered default on the family: a field missing from an older run.json keeps
+    # the method's default, not its config class's.
+    configs = {name: cli.config_from_dict(methods.default_config(name, args.run.family),
+                                          stored["methods"].get(name, {}), args) for name in args.run.methods}
+    if args.set_specs:  # given again: applied over the stored configs; open_run_dir refuses any difference
+        args.overrides = cli.parse_overrides(args.set_specs, configs)
+    else:
+        args.overrides = stored.get("overrides", {})
+    args.configs = cli.apply_overrides(configs, args.overrides)
 
 
 def main(argv=None):
     args = parse_args(argv)
     try:
         experiment.run(args.out, args.run, args.eval, args.configs, resume=args.resume, tensorboard=args.tensorboard,
-                       log=lambda line: print(line, flush=True), grid=args.grid)
+                       log=lambda line: print(line, flush=True), grid=args.grid, overrides=args.overrides)
         results = report.write(args.out)
     except experiment.RunError as err:
         print(f"error: {err}", file=sys.stderr)

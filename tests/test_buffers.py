@@ -99,3 +99,23 @@ def test_pick_rows_masks_what_it_cannot_fill():
     chex.assert_shape(idx, (5,))
     np.testing.assert_array_equal(np.sort(np.asarray(idx)[np.asarray(ok) > 0]), [0, 2])
     assert float(ok.sum()) == 2.0
+
+
+def test_non_finite_trajectories_stay_out_of_both_stores():
+    # Trajectory 1 has the highest return but a NaN observation; trajectory 3 an infinite last observation.
+    batch = _batch([1.0, 50.0, 2.0, 40.0], 0.0)
+    batch = batch._replace(obs=batch.obs.at[1, 1, 0].set(jnp.nan), last_obs=batch.last_obs.at[3, 1].set(jnp.inf))
+    np.testing.assert_array_equal(buffers.finite_trajectories(batch), [True, False, True, False])
+    skilled = buffers.skilled_update(buffers.skilled_init(T, 3, OBS, ACT), batch)
+    assert sorted(np.asarray(skilled.returns).tolist(), reverse=True)[:2] == [2.0, 1.0]
+    assert np.isneginf(np.asarray(skilled.returns)).sum() == 1
+    assert all(np.all(np.isfinite(np.asarray(x))) for x in (skilled.obs, skilled.action, skilled.valid))
+    recent = buffers.recent_add(buffers.recent_init(2, T, B, OBS, ACT), batch)
+    assert all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree.leaves(recent.traj))
+    for seed in range(5):
+        off = buffers.sample_offpolicy(recent, 4, jax.random.PRNGKey(seed))
+        # Only the two finite trajectories can be drawn: tags 0 and 2 in the observations.
+        assert float(off.mask.sum()) == 2.0
+        picked = np.asarray(off.traj.obs[0, :, 0])[np.asarray(off.mask) > 0]
+        assert sorted(picked.tolist()) == [0.0, 2.0]
+        assert all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree.leaves(off.traj))

@@ -1,9 +1,12 @@
 """Tests of the config-derived command line and the runner's entry point."""
 
 import dataclasses
+import json
 import pathlib
 
-from jcomps import cli, methods, ppo
+import pytest
+
+from jcomps import cli, experiment, methods, ppo
 from jcomps.methods import ppo_tl
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -53,3 +56,91 @@ def test_ci_runs_the_readme_test_command():
 
 def test_methods_registry_lists_ppo_tl():
     assert "ppo_tl" in methods.METHODS
+
+
+def _others(name):
+    """A run of ``name`` beside CoMPS (the bug this guards against leaked one method's defaults into another)."""
+    return ["comps", name] if name != "comps" else ["comps", "ppo_tl"]
+
+
+def _registered_default(name, family="point_goal", num_tasks=6):
+    expected = methods.default_config(name, family)
+    if hasattr(expected, "max_tasks"):  # the runner sets it from --num-tasks
+        expected = dataclasses.replace(expected, max_tasks=num_tasks)
+    return expected
+
+
+@pytest.mark.parametrize("name", methods.METHODS)
+def test_runner_config_is_the_registered_default_fresh_and_on_resume(runner, name, tmp_path):
+    args = runner.parse_args(["--methods", *_others(name), "--out", str(tmp_path)])
+    for method in args.run.methods:
+        assert args.configs[method] == _registered_default(method), method
+    # On --resume, from the run.json the runner wrote, and from an older run.json whose method entries lack fields
+    # (they keep the method's registered default, not its config class's).
+    description = experiment.describe(args.run, args.eval, args.configs)
+    for stored in (description, {**description, "methods": {m: {"max_tasks": 6} if hasattr(args.configs[m], "max_tasks")
+                                                              else {} for m in args.run.methods}}):
+        (tmp_path / "run.json").write_text(json.dumps(stored))
+        resumed = runner.parse_args(["--out", str(tmp_path), "--resume"])
+        for method in args.run.methods:
+            assert resumed.configs[method] == _registered_default(method), method
+
+
+def test_the_ablation_ladder_removes_one_feature_per_rung():
+    d = {name: methods.default_config(name, "ant_goal") for name in methods.METHODS}
+    comps = d["comps"]
+    assert comps.warm_start and comps.meta.importance_sampling and comps.meta.vtrace_baseline
+    assert d["gmps_ppo_is_x2"] == dataclasses.replace(comps, warm_start=False, num_skilled=40)
+    assert d["gmps_ppo_is"] == dataclasses.replace(comps, warm_start=False)
+    no_is = dataclasses.replace(comps.meta, importance_sampling=False, vtrace_baseline=False)
+    assert d["gmps_ppo"] == dataclasses.replace(comps, warm_start=False, meta=no_is)
+    # GMPS's RL step is vanilla policy gradient on every family: one full-batch step, no ratio, whatever the
+    # family's calibrated number of PPO steps.
+    assert d["gmps"] == dataclasses.replace(d["gmps_ppo"], ppo=dataclasses.replace(
+        comps.ppo, num_updates=1, minibatch_size=0, surrogate="vanilla"))
+    assert comps.ppo.num_updates == ppo.FAMILY_DEFAULTS["ant_goal"]["num_updates"]
+
+
+def test_set_changes_one_method_and_is_recorded(runner, tmp_path):
+    argv = ["--methods", "comps", "gmps_ppo_is", "--set", "gmps_ppo_is.meta.inner_learning_rate=0.01",
+            "--set", "gmps_ppo_is.ppo.hidden_sizes=64x32", "--inner-learning-rate", "0.002", "--out", str(tmp_path)]
+    args = runner.parse_args(argv)
+    assert args.configs["comps"].meta.inner_learning_rate == 0.002  # the shared option
+    assert args.configs["gmps_ppo_is"].meta.inner_learning_rate == 0.01  # --set wins for its method
+    assert args.configs["gmps_ppo_is"].ppo.hidden_sizes == (64, 32)
+    assert args.configs["comps"].ppo.hidden_sizes == ppo.PPOConfig().hidden_sizes
+    description = experiment.describe(args.run, args.eval, args.configs, overrides=args.overrides)
+    assert description["overrides"] == {"gmps_ppo_is": {"meta.inner_learning_rate": 0.01,
+                                                        "ppo.hidden_sizes": [64, 32]}}
+    (tmp_path / "run.json").write_text(json.dumps(description))
+    resumed = runner.parse_args(["--out", str(tmp_path), "--resume"])
+    assert resumed.configs == args.configs and resumed.overrides == description["overrides"]
+
+
+def test_a_different_set_on_resume_is_refused(runner, tmp_path, capsys):
+    args = runner.parse_args(["--methods", "comps", "--set", "comps.meta.inner_learning_rate=0.01",
+                              "--out", str(tmp_path)])
+    experiment.open_run_dir(str(tmp_path), experiment.describe(args.run, args.eval, args.configs,
+                                                               overrides=args.overrides), resume=False)
+    with pytest.raises(SystemExit) as exit_:
+        runner.main(["--out", str(tmp_path), "--resume", "--set", "comps.meta.inner_learning_rate=0.02"])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert "inner_learning_rate: run has 0.01, asked 0.02" in err
+
+
+@pytest.mark.parametrize("spec,message", [
+    ("nope.ppo.budget=3", "method 'nope' is not in this run; its methods: comps, ppo_tl"),
+    ("comps.meta=1", "meta is a group of fields; name one: meta.{outer_learning_rate,"),
+    ("comps.meta.foo=1", "unknown field 'foo'; allowed: outer_learning_rate"),
+    ("comps.meta.inner_learning_rate=-1", "--set comps.meta.inner_learning_rate: invalid config value"),
+    ("comps.meta.outer_update=average", "allowed: mean, sequential"),
+    ("ppo_tl.ppo.budget=x", "--set ppo_tl.ppo.budget: cannot parse 'x'"),
+    ("ppo_tl.budget=3", "unknown field 'budget'; allowed: ppo, reset_optimizer"),
+    ("comps", "expected METHOD.FIELD[.FIELD]=VALUE"),
+])
+def test_bad_set_exits_2_naming_it(runner, spec, message, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        runner.parse_args(["--set", spec, "--out", "/nonexistent/x"])
+    assert exit_.value.code == 2
+    assert message in capsys.readouterr().err

@@ -116,7 +116,7 @@ def test_report_regenerates_the_results(full_run, tmp_path):
 
 
 @pytest.mark.parametrize("argv,message", [
-    (["--methods", "maml"], "methods='maml'; allowed: ppo_tl, ppo, comps, gmps_ppo"),
+    (["--methods", "maml"], "methods='maml'; allowed: ppo_tl, ppo, comps, gmps, gmps_ppo, gmps_ppo_is, gmps_ppo_is_x2"),
     (["--family", "humanoid"], "family='humanoid'; allowed:"),
     (["--budget", "0"], "budget=0"),
     (["--budget", "-3"], "budget=-3"),

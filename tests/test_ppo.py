@@ -120,7 +120,7 @@ def test_ppo_raises_return_on_point_goal(point):
 
 @pytest.mark.parametrize("field,value", [
     ("num_trajectories", 0), ("learning_rate", -1.0), ("learning_rate", float("nan")), ("discount", 1.5),
-    ("budget", 0), ("hidden_sizes", ()), ("clip_epsilon", 0.0),
+    ("budget", 0), ("hidden_sizes", ()), ("clip_epsilon", 0.0), ("surrogate", "reinforce"), ("minibatch_size", -1),
 ])
 def test_bad_config_names_the_field(field, value):
     with pytest.raises(ValueError, match=field):
@@ -224,3 +224,20 @@ def test_method_ppo_starts_every_task_afresh(point):
         leaves = zip(jax.tree.leaves(again.params), jax.tree.leaves(trained.params))
         same = all(np.array_equal(a, b) for a, b in leaves)
         assert same != carried, name
+
+
+def test_vanilla_surrogate_is_the_clipped_one_on_policy():
+    # On the batch's own policy the ratio is 1, inside the clip range: both losses have the same gradient (one
+    # full-batch vanilla step is what one PPO step would do). Off-policy they differ: vanilla ignores the ratio.
+    params = networks.init_actor_critic(jax.random.PRNGKey(0), 3, 2, (8,), 0.5)
+    rng = np.random.default_rng(3)
+    obs = jnp.asarray(rng.normal(size=(40, 3)), jnp.float32)
+    action = jnp.asarray(rng.normal(size=(40, 2)), jnp.float32)
+    batch = {"obs": obs, "action": action, "log_prob": networks.policy_log_prob(params.policy, obs, action),
+             "valid": jnp.ones((40,), jnp.float32), "advantage": jnp.asarray(rng.normal(size=40), jnp.float32),
+             "target": jnp.zeros((40,), jnp.float32)}
+    grad = lambda b, s: jax.grad(lambda p: ppo.ppo_loss(p, b, dataclasses.replace(SMALL, surrogate=s))[0])(params)  # noqa: E731
+    chex.assert_trees_all_close(grad(batch, "vanilla"), grad(batch, "clipped"), rtol=1e-5, atol=1e-7)
+    stale = {**batch, "log_prob": batch["log_prob"] - 0.3}
+    diff = jax.tree.map(lambda a, b: float(jnp.max(jnp.abs(a - b))), grad(stale, "vanilla"), grad(stale, "clipped"))
+    assert max(jax.tree.leaves(diff)) > 1e-4

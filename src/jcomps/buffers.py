@@ -40,10 +40,12 @@ class SkilledStore(NamedTuple):
 class RecentStore(NamedTuple):
     """A ring of the last ``capacity`` iterations' batches: ``traj`` fields have a leading [capacity] axis.
 
+    ``finite`` (bool[capacity, B]) marks the trajectories free of NaN and infinity (only those are sampled);
     ``iterations`` (i32[]) counts the batches ever added.
     """
 
     traj: Trajectory
+    finite: jax.Array
     iterations: jax.Array
 
 
@@ -83,10 +85,32 @@ def skilled_init(T: int, num_skilled: int, obs_size: int, action_size: int) -> S
                         jnp.zeros((T, num_skilled), jnp.float32), jnp.full((num_skilled,), -jnp.inf, jnp.float32))
 
 
+def finite_trajectories(traj: Trajectory) -> jax.Array:
+    """bool[B]: the trajectories of ``traj`` ([T, B, ...]) whose every field is free of NaN and infinity."""
+    per_step = traj._replace(last_obs=None)
+    ok = [jnp.all(jnp.isfinite(x).reshape(x.shape[:2] + (-1,)), axis=(0, 2)) for x in jax.tree.leaves(per_step)]
+    ok.append(jnp.all(jnp.isfinite(traj.last_obs), axis=-1))
+    return jnp.all(jnp.stack(ok), axis=0)
+
+
+def _zero_nonfinite(traj: Trajectory, ok: jax.Array) -> Trajectory:
+    """``traj`` with every value of the trajectories not ``ok`` (bool[B]) replaced by 0, so that no NaN is
+    stored, not even in a row that is never sampled (0 · NaN would still be NaN)."""
+    def zero(x, batch_axis):
+        keep = jnp.expand_dims(ok, tuple(a for a in range(x.ndim) if a != batch_axis))
+        return jnp.where(keep, x, jnp.zeros_like(x))
+
+    per_step = jax.tree.map(lambda x: zero(x, 1), traj._replace(last_obs=None))
+    return per_step._replace(last_obs=zero(traj.last_obs, 0))
+
+
 def skilled_update(store: SkilledStore, traj: Trajectory) -> SkilledStore:
-    """Merges a batch ``traj`` ([T, B, ...]) into the store, keeping the K highest returns."""
+    """Merges a batch ``traj`` ([T, B, ...]) into the store, keeping the K highest returns. Trajectories holding
+    NaN or infinity never enter (return −inf, data zeroed)."""
     k = store.returns.shape[0]
-    returns = jnp.concatenate([store.returns, jnp.sum(traj.reward, axis=0)])
+    ok = finite_trajectories(traj)
+    traj = _zero_nonfinite(traj, ok)
+    returns = jnp.concatenate([store.returns, jnp.where(ok, jnp.sum(traj.reward, axis=0), -jnp.inf)])
     top, idx = jax.lax.top_k(returns, k)
     pick = lambda old, new: jnp.take(jnp.concatenate([old, new], axis=1), idx, axis=1)  # noqa: E731
     return SkilledStore(pick(store.obs, traj.obs), pick(store.action, traj.action), pick(store.valid, traj.valid),
@@ -95,15 +119,19 @@ def skilled_update(store: SkilledStore, traj: Trajectory) -> SkilledStore:
 
 def recent_init(capacity: int, T: int, B: int, obs_size: int, action_size: int) -> RecentStore:
     """An empty ring of ``capacity`` iterations of B trajectories."""
-    return RecentStore(_empty_traj(T, B, obs_size, action_size, (capacity,)), jnp.int32(0))
+    return RecentStore(_empty_traj(T, B, obs_size, action_size, (capacity,)), jnp.zeros((capacity, B), bool),
+                       jnp.int32(0))
 
 
 def recent_add(store: RecentStore, traj: Trajectory) -> RecentStore:
-    """Adds one iteration's batch, overwriting the oldest when full."""
+    """Adds one iteration's batch, overwriting the oldest when full. Trajectories holding NaN or infinity are
+    stored as zeros and marked not ``finite``: ``sample_offpolicy`` never picks them."""
     capacity = store.traj.reward.shape[0]
     slot = store.iterations % capacity
-    new = jax.tree.map(lambda buf, x: jax.lax.dynamic_update_index_in_dim(buf, x, slot, 0), store.traj, traj)
-    return RecentStore(new, store.iterations + 1)
+    ok = finite_trajectories(traj)
+    put = lambda buf, x: jax.lax.dynamic_update_index_in_dim(buf, x, slot, 0)  # noqa: E731
+    new = jax.tree.map(put, store.traj, _zero_nonfinite(traj, ok))
+    return RecentStore(new, put(store.finite, ok), store.iterations + 1)
 
 
 def pick_rows(rng: jax.Array, ok: jax.Array, num: int) -> tuple[jax.Array, jax.Array]:
@@ -119,11 +147,11 @@ def pick_rows(rng: jax.Array, ok: jax.Array, num: int) -> tuple[jax.Array, jax.A
 
 
 def sample_offpolicy(store: RecentStore, num: int, rng: jax.Array) -> OffPolicyStore:
-    """``num`` trajectories drawn without replacement from every iteration in the ring (the last
-    min(M, capacity) iterations); if fewer exist, the rest of the rows are masked out."""
+    """``num`` trajectories drawn without replacement from the finite trajectories of every iteration in the ring
+    (the last min(M, capacity) iterations); if fewer exist, the rest of the rows are masked out."""
     capacity, _, B = store.traj.reward.shape
     filled = jnp.minimum(store.iterations, capacity)
-    candidate_ok = (jnp.arange(capacity) < filled)[:, None] & jnp.ones((1, B), bool)
+    candidate_ok = (jnp.arange(capacity) < filled)[:, None] & store.finite
     flat_idx, picked = pick_rows(rng, candidate_ok.reshape(-1), num)
     it, b = flat_idx // B, flat_idx % B
     per_step = store.traj._replace(last_obs=None)

@@ -3,6 +3,9 @@
 Every field of a config dataclass becomes ``--field-name`` (nested config dataclasses are flattened: the
 fields of ``PPOTLConfig.ppo`` become top-level options). Methods that share a field name (all of them share
 the PPO fields) share the option. The field's docstring, the attribute docstring under it, is its help text.
+
+``--set METHOD.FIELD[.FIELD]=VALUE`` (``parse_overrides``, ``apply_overrides``) changes one method alone, by the
+field's full path (``--set gmps_ppo_is.meta.inner_learning_rate=0.01``); it wins over the shared options.
 """
 
 from __future__ import annotations
@@ -11,6 +14,7 @@ import argparse
 import ast
 import dataclasses
 import inspect
+import re
 import typing
 from typing import Optional
 
@@ -77,36 +81,124 @@ def add_config_args(parser: argparse.ArgumentParser, classes) -> None:
                                metavar=name.upper(), help=f"{doc} (default: {shown})")
 
 
-def build_config(cls, args: argparse.Namespace, base=None):
-    """An instance of config dataclass ``cls`` with the options given on the command line, and elsewhere the
-    values of ``base`` (an instance of ``cls``, e.g. a family's defaults) or, without it, the class defaults."""
-    hints = typing.get_type_hints(cls)
-    kwargs = {}
-    for f in dataclasses.fields(cls):
-        inner = None if base is None else getattr(base, f.name)
-        if dataclasses.is_dataclass(hints[f.name]):
-            kwargs[f.name] = build_config(type(inner) if inner is not None else hints[f.name], args, inner)
-        else:
-            value = getattr(args, f"cfg_{f.name}", None)
-            if value is not None:
-                kwargs[f.name] = tuple(value) if isinstance(value, list) else value
-            elif base is not None:
-                kwargs[f.name] = inner
-    return cls(**kwargs)
-
-
-def config_from_dict(cls, data: dict, args: Optional[argparse.Namespace] = None):
-    """An instance of ``cls`` from its ``dataclasses.asdict``-like ``data`` (lists become tuples), with any
-    options given on the command line in ``args`` put over it."""
-    hints = typing.get_type_hints(cls)
-    kwargs = {}
-    for f in dataclasses.fields(cls):
-        if dataclasses.is_dataclass(hints[f.name]):
-            kwargs[f.name] = config_from_dict(hints[f.name], data.get(f.name, {}), args)
+def _with_options(config, args: argparse.Namespace):
+    """``config`` with the leaf fields given on the command line replaced (every nested occurrence)."""
+    changes = {}
+    for f in dataclasses.fields(config):
+        current = getattr(config, f.name)
+        if dataclasses.is_dataclass(current):
+            changes[f.name] = _with_options(current, args)
             continue
-        value = data.get(f.name, f.default)
-        given = getattr(args, f"cfg_{f.name}", None) if args is not None else None
-        if given is not None:
-            value = given
-        kwargs[f.name] = tuple(value) if isinstance(value, list) else value
-    return cls(**kwargs)
+        value = getattr(args, f"cfg_{f.name}", None) if args is not None else None
+        if value is not None:
+            changes[f.name] = tuple(value) if isinstance(value, list) else value
+    return dataclasses.replace(config, **changes)
+
+
+def build_config(cls, args: argparse.Namespace, base=None):
+    """``base`` (an instance of ``cls``: a method's registered default on a family; default ``cls()``) with the
+    options given on the command line put over it. Nothing not named on the command line changes, nested configs
+    included."""
+    base = cls() if base is None else base
+    if not isinstance(base, cls):
+        raise TypeError(f"base must be a {cls.__name__}, got {type(base).__name__}")
+    return _with_options(base, args)
+
+
+def config_from_dict(base, data: dict, args: Optional[argparse.Namespace] = None):
+    """``base`` (a config instance: the method's registered default on the run's family) with the values of its
+    ``dataclasses.asdict``-like ``data`` (lists become tuples; fields missing from ``data`` keep ``base``'s value)
+    and then any options given on the command line in ``args`` put over it."""
+    changes = {}
+    for f in dataclasses.fields(base):
+        current = getattr(base, f.name)
+        if dataclasses.is_dataclass(current):
+            changes[f.name] = config_from_dict(current, data.get(f.name) or {}, None)
+        elif f.name in data:
+            value = data[f.name]
+            changes[f.name] = tuple(value) if isinstance(value, list) else value
+    return _with_options(dataclasses.replace(base, **changes), args)
+
+
+def parse_value(tp, text: str):
+    """A command-line word as a value of field type ``tp`` (tuples: ``128x64`` or ``128,64``; optionals: ``none``).
+    Raises ValueError."""
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    text = text.strip()
+    if origin is typing.Union and type(None) in args:
+        if text.lower() == "none":
+            return None
+        return parse_value(next(a for a in args if a is not type(None)), text)
+    try:
+        if origin is tuple:
+            return tuple(args[0](x) for x in re.split(r"[x,\s]+", text) if x)
+        return _parser_for(tp)(text)
+    except (ValueError, TypeError, argparse.ArgumentTypeError) as err:
+        raise ValueError(f"cannot parse {text!r} as {getattr(tp, '__name__', tp)} ({err})") from None
+
+
+def _leaf(config, path: list[str], where: str):
+    """(type, current value) of the leaf field at ``path`` of ``config``; ValueError naming what is allowed."""
+    hints = typing.get_type_hints(type(config))
+    names = [f.name for f in dataclasses.fields(config)]
+    head = path[0]
+    if head not in names:
+        raise ValueError(f"{where}: unknown field {head!r}; allowed: {', '.join(names)}")
+    current = getattr(config, head)
+    if dataclasses.is_dataclass(current):
+        if len(path) == 1:
+            inner = [f.name for f in dataclasses.fields(current)]
+            raise ValueError(f"{where}: {head} is a group of fields; name one: {head}.{{{','.join(inner)}}}")
+        return _leaf(current, path[1:], where)
+    if len(path) > 1:
+        raise ValueError(f"{where}: {head} is a field, not a group ({'.'.join(path[1:])} cannot follow it)")
+    return hints[head], current
+
+
+def set_path(config, path, value):
+    """``config`` with the leaf at dotted ``path`` (a tuple of names) set to ``value``, validated by the config
+    classes' own checks."""
+    head, rest = path[0], path[1:]
+    if rest:
+        return dataclasses.replace(config, **{head: set_path(getattr(config, head), rest, value)})
+    return dataclasses.replace(config, **{head: value})
+
+
+def parse_overrides(specs, configs: dict) -> dict:
+    """``--set METHOD.FIELD[.FIELD]=VALUE`` arguments as {method: {"field.path": value}}, each checked against
+    ``configs`` ({method: its config}): the method must be one of the run's, the path a leaf field, the value of
+    its type. Raises ValueError naming the argument and what is allowed."""
+    out: dict = {}
+    for spec in specs or ():
+        target, sep, text = spec.partition("=")
+        parts = [p.strip().replace("-", "_") for p in target.split(".")]
+        if not sep or len(parts) < 2 or not all(parts):
+            raise ValueError(f"--set {spec!r}: expected METHOD.FIELD[.FIELD]=VALUE, e.g. comps.meta.inner_learning_rate=0.01")
+        method, path = parts[0], parts[1:]
+        where = f"--set {target.strip()}"
+        if method not in configs:
+            raise ValueError(f"{where}: method {method!r} is not in this run; its methods: {', '.join(configs)}")
+        tp, _ = _leaf(configs[method], path, where)
+        try:
+            value = parse_value(tp, text)
+        except ValueError as err:
+            raise ValueError(f"{where}: {err}") from None
+        key = ".".join(path)
+        if key in out.get(method, {}):
+            raise ValueError(f"{where}: given twice")
+        out.setdefault(method, {})[key] = value
+    return out
+
+
+def apply_overrides(configs: dict, overrides: dict) -> dict:
+    """``configs`` with each method's ``overrides`` ({"field.path": value}) set; a refused value raises a
+    ValueError naming ``--set METHOD.PATH``."""
+    out = dict(configs)
+    for method, values in overrides.items():
+        for key, value in values.items():
+            value = tuple(value) if isinstance(value, list) else value
+            try:
+                out[method] = set_path(out[method], tuple(key.split(".")), value)
+            except ValueError as err:
+                raise ValueError(f"--set {method}.{key}: {err}") from None
+    return out

@@ -83,16 +83,20 @@ def _jsonable(x):
     return x
 
 
-def describe(run: RunConfig, eval_config: continual.EvalConfig, method_configs: dict, grid=()) -> dict:
+def describe(run: RunConfig, eval_config: continual.EvalConfig, method_configs: dict, grid=(),
+             overrides: Optional[dict] = None) -> dict:
     """The JSON description of a run (``run.json``), with this process's device count: float rounding depends on
     it, so a resume must use the same count (``experiments/run_sequence.py --resume`` takes it from here). With a
-    hyperparameter grid, ``grid`` holds its axes in order (``jcomps.grid.to_json``); without one there is no
-    ``grid`` key, as before grids existed."""
+    hyperparameter grid, ``grid`` holds its axes in order (``jcomps.grid.to_json``); with per-method overrides
+    (``--set``), ``overrides`` holds them ({method: {"field.path": value}}, already part of the methods' configs);
+    without either there is no such key."""
     out = {"run": _jsonable(run), "eval": _jsonable(eval_config),
            "methods": {name: _jsonable(method_configs[name]) for name in run.methods},
            "devices": jax.device_count()}
     if grid:
         out["grid"] = grids.to_json(grid)
+    if overrides:
+        out["overrides"] = {m: {k: _jsonable(v) for k, v in values.items()} for m, values in overrides.items()}
     return out
 
 
@@ -607,10 +611,10 @@ def load_raw(out: str, name: str) -> Optional[dict]:
 
 def run(out: str, run_config: RunConfig, eval_config: continual.EvalConfig, method_configs: dict,
         resume: bool = False, log: Callable[[str], None] = print, tensorboard: bool = False,
-        grid: grids.Grid = ()) -> dict:
+        grid: grids.Grid = (), overrides: Optional[dict] = None) -> dict:
     """Runs every method of ``run_config`` into ``out`` (resuming where it stopped), each at every point of the
     hyperparameter ``grid`` (``jcomps.grid``; empty: no grid); returns raw metrics by results entry key."""
-    open_run_dir(out, describe(run_config, eval_config, method_configs, grid), resume)
+    open_run_dir(out, describe(run_config, eval_config, method_configs, grid, overrides), resume)
     raws = {}
     for name in run_config.methods:
         for spec in grids.programs(name, method_configs[name], grid):

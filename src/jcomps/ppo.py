@@ -3,8 +3,9 @@
 One *iteration* (the paper's "episode" on its plots) collects ``num_trajectories`` episodes of T_max steps
 with the current policy, measures the success rate, and, unless the threshold is reached, makes
 ``num_updates`` Adam steps on the clipped-surrogate PPO loss, each on a minibatch of ``minibatch_size``
-samples. The iterations run in a ``lax.while_loop``; per-iteration metrics come back as fixed-size arrays of
-length ``budget`` with a validity mask, so the whole step is one compiled program.
+samples (``surrogate="vanilla"`` with one full-batch step is the vanilla policy gradient of GMPS's RL step).
+The iterations run in a ``lax.while_loop``; per-iteration metrics come back as fixed-size arrays of length
+``budget`` with a validity mask, so the whole step is one compiled program.
 
 Time limits are truncations: the value of the observation reached at T_max bootstraps the return, while a
 termination (Ant Direction falling) does not.
@@ -34,7 +35,7 @@ class PPOConfig:
     """Minibatch gradient steps per iteration (paper: "16 training updates with a batch size of 256"; read as 16
     steps, about one pass over the 4,000-sample batch, or as 16 passes, 256 steps: docs/families.md)."""
     minibatch_size: int = 256
-    """Samples per gradient step (paper: 256)."""
+    """Samples per gradient step (paper: 256); 0: the whole batch (T_max · num_trajectories samples)."""
     learning_rate: float = 1e-3
     """Adam learning rate (paper grid: 0.01, 5e-3, 1e-3, 1e-4)."""
     init_std: float = 0.5
@@ -43,6 +44,9 @@ class PPOConfig:
     """Hidden layer widths of the policy and value MLPs (paper: [128, 64])."""
     clip_epsilon: float = 0.2
     """PPO ratio clipping range."""
+    surrogate: str = "clipped"
+    """Policy loss: ``clipped``, PPO's clipped surrogate; ``vanilla``, the on-policy policy gradient −mean(log π·Â)
+    with no ratio (GMPS's RL step, with one full-batch step per iteration)."""
     discount: float = 0.99
     """Discount factor γ."""
     gae_lambda: float = 0.95
@@ -72,12 +76,14 @@ class PPOConfig:
     def __post_init__(self):
         check_field(self.num_trajectories >= 1, "num_trajectories", self.num_trajectories, "an integer >= 1")
         check_field(self.num_updates >= 0, "num_updates", self.num_updates, "an integer >= 0")
-        check_field(self.minibatch_size >= 1, "minibatch_size", self.minibatch_size, "an integer >= 1")
+        check_field(self.minibatch_size >= 0, "minibatch_size", self.minibatch_size,
+                    "an integer >= 1, or 0 for the whole batch")
         check_field(self.learning_rate > 0, "learning_rate", self.learning_rate, "a number > 0")
         check_field(self.init_std > 0, "init_std", self.init_std, "a number > 0")
         check_field(len(self.hidden_sizes) >= 1 and all(h >= 1 for h in self.hidden_sizes), "hidden_sizes",
                self.hidden_sizes, "one or more positive layer widths")
         check_field(self.clip_epsilon > 0, "clip_epsilon", self.clip_epsilon, "a number > 0")
+        check_field(self.surrogate in SURROGATES, "surrogate", self.surrogate, ", ".join(SURROGATES))
         check_field(0 < self.discount <= 1, "discount", self.discount, "a number in (0, 1]")
         check_field(0 <= self.gae_lambda <= 1, "gae_lambda", self.gae_lambda, "a number in [0, 1]")
         check_field(self.value_coef >= 0, "value_coef", self.value_coef, "a number >= 0")
@@ -89,6 +95,9 @@ class PPOConfig:
     def budget_for(self, family: Family) -> int:
         """Iterations per task for ``family``."""
         return family.default_budget if self.budget is None else self.budget
+
+
+SURROGATES = ("clipped", "vanilla")
 
 
 def check_field(ok: bool, field: str, value, allowed: str):
@@ -200,7 +209,8 @@ def masked_mean(x, mask):
 
 
 def ppo_loss(params: networks.ActorCriticParams, batch: dict, config: PPOConfig):
-    """Clipped-surrogate PPO loss on a flat minibatch; returns (loss, (policy_loss, value_loss, entropy, kl))."""
+    """PPO loss (clipped surrogate, or the vanilla policy gradient) on a flat minibatch; returns (loss,
+    (policy_loss, value_loss, entropy, kl))."""
     mask = batch["valid"]
     adv = batch["advantage"]
     if config.normalize_advantages:
@@ -210,8 +220,11 @@ def ppo_loss(params: networks.ActorCriticParams, batch: dict, config: PPOConfig)
     log_prob = networks.policy_log_prob(params.policy, batch["obs"], batch["action"])
     log_ratio = log_prob - batch["log_prob"]
     ratio = jnp.exp(log_ratio)
-    surrogate = jnp.minimum(ratio * adv, jnp.clip(ratio, 1 - config.clip_epsilon, 1 + config.clip_epsilon) * adv)
-    policy_loss = -masked_mean(surrogate, mask)
+    if config.surrogate == "vanilla":
+        policy_loss = -masked_mean(log_prob * adv, mask)
+    else:
+        clipped = jnp.clip(ratio, 1 - config.clip_epsilon, 1 + config.clip_epsilon)
+        policy_loss = -masked_mean(jnp.minimum(ratio * adv, clipped * adv), mask)
     value_loss = 0.5 * masked_mean(jnp.square(networks.value_of(params, batch["obs"]) - batch["target"]), mask)
     entropy = networks.gaussian_entropy(params.policy["log_std"])
     approx_kl = masked_mean(ratio - 1.0 - log_ratio, mask)
@@ -241,10 +254,11 @@ def ppo_update(config: PPOConfig, optimizer, params, opt_state, traj: acting.Tra
     }
     flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), flat)
     n = flat["valid"].shape[0]
-    total = config.num_updates * config.minibatch_size
+    minibatch = config.minibatch_size or n
+    total = config.num_updates * minibatch
     n_perm = max(1, -(-total // n))
     perms = jax.vmap(lambda k: jax.random.permutation(k, n))(jax.random.split(rng, n_perm))
-    indices = perms.reshape(-1)[:total].reshape(config.num_updates, config.minibatch_size)
+    indices = perms.reshape(-1)[:total].reshape(config.num_updates, minibatch)
     grad_fn = jax.value_and_grad(ppo_loss, has_aux=True)
 
     def step(carry, idx):

@@ -1,37 +1,80 @@
-"""Continual-learning methods, registered by name; every one implements ``jcomps.methods.base.Method``."""
+"""Continual-learning methods, registered by name; every one implements ``jcomps.methods.base.Method``.
+
+A registered method is a constructor and its default config *instance*: the rungs of the paper's ablation ladder
+(appendix "CoMPS Ablation") share CoMPS's config class and constructor and differ only in their defaults.
+
+| name | what it is |
+|---|---|
+| ``ppo`` | single-task PPO from a random initialisation on every task (no transfer) |
+| ``ppo_tl`` | PPO+TL: PPO on each task, parameters carried to the next (the paper's baseline) |
+| ``gmps`` | the meta step without importance weights, V-trace or warm start; the RL step is vanilla on-policy policy gradient (one full-batch gradient step per iteration, no ratio clipping) |
+| ``gmps_ppo`` | as ``gmps`` with our PPO as the RL step |
+| ``gmps_ppo_is`` | + importance-sampled inner gradient with the V-trace baseline (no warm start) |
+| ``gmps_ppo_is_x2`` | + twice the skilled data (|D*_i| = 40; no warm start) |
+| ``comps`` | GMPS + PPO + IS + FTML warm start: CoMPS |
+"""
 
 from __future__ import annotations
 
 import dataclasses
+from typing import Any, Callable, NamedTuple
 
-from jcomps import ppo
+from jcomps import meta, ppo
 from jcomps.envs.base import Family
 from jcomps.methods import comps, ppo_tl
 from jcomps.methods.base import Method, TaskMetrics
 
-# name -> (config class, constructor(family, config, on_iteration, on_meta_step) -> Method)
-REGISTRY = {
-    "ppo_tl": (ppo_tl.PPOTLConfig, ppo_tl.make),
-    "ppo": (ppo_tl.PPOTLConfig, ppo_tl.make_scratch),
-    "comps": (comps.CoMPSConfig, comps.make),
-    "gmps_ppo": (comps.GMPSPPOConfig, comps.make_gmps_ppo),
+
+class Registered(NamedTuple):
+    """A registered method.
+
+    Attributes:
+      default: its default config (an instance of its config dataclass).
+      make: ``(family, config, on_iteration, on_meta_step) -> Method``.
+      rl_step: PPO fields that define the method's RL step; they stay in force over the family's calibrated PPO
+        settings (``gmps``'s vanilla policy gradient keeps one gradient step per iteration on every family).
+    """
+
+    default: Any
+    make: Callable[..., Method]
+    rl_step: dict = {}
+
+
+_NO_IS = meta.MetaConfig(importance_sampling=False, vtrace_baseline=False)
+_VANILLA_PG = {"num_updates": 1, "minibatch_size": 0, "surrogate": "vanilla"}
+
+REGISTRY: dict[str, Registered] = {
+    "ppo_tl": Registered(ppo_tl.PPOTLConfig(), ppo_tl.make),
+    "ppo": Registered(ppo_tl.PPOTLConfig(), ppo_tl.make_scratch),
+    "comps": Registered(comps.CoMPSConfig(), comps.make),
+    "gmps": Registered(comps.CoMPSConfig(ppo=dataclasses.replace(ppo.PPOConfig(), **_VANILLA_PG), meta=_NO_IS,
+                                         warm_start=False), comps.named("gmps"), _VANILLA_PG),
+    "gmps_ppo": Registered(comps.CoMPSConfig(meta=_NO_IS, warm_start=False), comps.named("gmps_ppo")),
+    "gmps_ppo_is": Registered(comps.CoMPSConfig(warm_start=False), comps.named("gmps_ppo_is")),
+    "gmps_ppo_is_x2": Registered(comps.CoMPSConfig(warm_start=False, num_skilled=40), comps.named("gmps_ppo_is_x2")),
 }
 METHODS = tuple(REGISTRY)
 
 
-def config_class(name: str):
-    """The config dataclass of method ``name``."""
+def _registered(name: str) -> Registered:
     if name not in REGISTRY:
         raise ValueError(f"unknown method {name!r}; allowed: {', '.join(METHODS)}")
-    return REGISTRY[name][0]
+    return REGISTRY[name]
+
+
+def config_class(name: str):
+    """The config dataclass of method ``name``."""
+    return type(_registered(name).default)
 
 
 def default_config(name: str, family: Family | str):
-    """Method ``name``'s default config on ``family``: its registered defaults with the family's calibrated PPO
-    settings (``jcomps.ppo.FAMILY_DEFAULTS``) for the RL step."""
-    config = config_class(name)()
+    """Method ``name``'s default config on ``family``: its registered default with the family's calibrated PPO
+    settings (``jcomps.ppo.FAMILY_DEFAULTS``) for the RL step, apart from the fields that define the method's RL
+    step (``Registered.rl_step``)."""
+    entry = _registered(name)
     family_name = family if isinstance(family, str) else family.name
-    return dataclasses.replace(config, ppo=ppo.family_config(family_name, config.ppo))
+    rl = dataclasses.replace(ppo.family_config(family_name, entry.default.ppo), **entry.rl_step)
+    return dataclasses.replace(entry.default, ppo=rl)
 
 
 def make(name: str, family: Family, config=None, on_iteration=None, on_meta_step=None) -> Method:
@@ -48,7 +91,7 @@ def make(name: str, family: Family, config=None, on_iteration=None, on_meta_step
         config = default_config(name, family)
     if not isinstance(config, cls):
         raise TypeError(f"method {name!r} takes a {cls.__name__}, got {type(config).__name__}")
-    return REGISTRY[name][1](family, config, on_iteration, on_meta_step)
+    return REGISTRY[name].make(family, config, on_iteration, on_meta_step)
 
 
-__all__ = ["METHODS", "Method", "REGISTRY", "TaskMetrics", "config_class", "default_config", "make"]
+__all__ = ["METHODS", "Method", "REGISTRY", "Registered", "TaskMetrics", "config_class", "default_config", "make"]

@@ -1,4 +1,4 @@
-"""CoMPS (Continual Meta Policy Search) and its GMPS+PPO ablation.
+"""CoMPS (Continual Meta Policy Search) and the rungs of its ablation ladder (``jcomps.methods``).
 
 Per task i: the RL step (PPO from θ_i) while the experience stores are filled (D*_i: top-20 trajectories by
 return, kept incrementally; D_i: 100 trajectories from the last ⌈0.05·N⌉ iterations with behaviour
@@ -45,14 +45,6 @@ class CoMPSConfig:
         ppo.check_field(self.num_skilled >= 1, "num_skilled", self.num_skilled, "an integer >= 1")
         ppo.check_field(self.num_offpolicy >= 1, "num_offpolicy", self.num_offpolicy, "an integer >= 1")
         ppo.check_field(0 < self.recent_fraction <= 1, "recent_fraction", self.recent_fraction, "a number in (0, 1]")
-
-
-@dataclasses.dataclass(frozen=True)
-class GMPSPPOConfig(CoMPSConfig):
-    """GMPS+PPO: CoMPS's meta step without importance weights or V-trace (the paper's main ablation)."""
-
-    meta: meta.MetaConfig = meta.MetaConfig(importance_sampling=False, vtrace_baseline=False)
-    """The meta step's hyperparameters (importance sampling and V-trace off)."""
 
 
 class CoMPSState(NamedTuple):
@@ -116,6 +108,9 @@ def make(family: Family, config: CoMPSConfig = CoMPSConfig(), on_iteration=None,
     return Method(name, config, family, init, learn_task)
 
 
-def make_gmps_ppo(family: Family, config: GMPSPPOConfig = GMPSPPOConfig(), on_iteration=None,
-                  on_meta_step=None) -> Method:
-    return make(family, config, on_iteration, on_meta_step, name="gmps_ppo")
+def named(name: str):
+    """CoMPS's constructor under another registry name (the rungs of the ablation ladder differ in config only)."""
+    def make_named(family: Family, config: CoMPSConfig = CoMPSConfig(), on_iteration=None, on_meta_step=None):
+        return make(family, config, on_iteration, on_meta_step, name=name)
+
+    return make_named
