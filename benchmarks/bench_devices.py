@@ -28,7 +28,7 @@ config = methods.config_class(a["method"])()
 config = dataclasses.replace(config, ppo=dataclasses.replace(config.ppo, budget=a["budget"]))
 eval_config = continual.EvalConfig(backward_tasks=0, heldout_iterations=0)
 devices = experiment.num_devices(a["seeds"])
-program = experiment._program(a["method"], a["family"], config, eval_config, a["tasks"], devices)
+program = experiment.Programs().get(a["method"], a["family"], config, eval_config, a["tasks"], devices)
 seeds = list(range(a["seeds"]))
 values = np.stack([envs.sequence_values(family, "non-stationary", s, a["tasks"]) for s in seeds])
 seqs = program.put(jax.tree.map(lambda x: x.reshape((len(seeds), a["tasks"]) + x.shape[1:]),

@@ -56,7 +56,7 @@ def main():
         real = len(spec.points) * seeds
         devices = experiment.num_devices(real)
         _, member_seed, hparams = experiment.members(spec, seeds, 0, devices)
-        program = experiment._program(args.method, args.family, spec.config, eval_config, args.tasks, devices,
+        program = experiment.Programs().get(args.method, args.family, spec.config, eval_config, args.tasks, devices,
                                       spec.traced)
         values = np.stack([envs.sequence_values(family, "non-stationary", s, args.tasks) for s in member_seed])
         seqs = program.put(jax.tree.map(lambda x: x.reshape((len(member_seed), args.tasks) + x.shape[1:]),

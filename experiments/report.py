@@ -1,6 +1,7 @@
 """Regenerate ``results.json``, the plots and ``significance.md`` of a run directory.
 
     python experiments/report.py runs/point_goal-20261125-210000
+    python experiments/report.py runs/ladder --baseline gmps_ppo      # compare every method with gmps_ppo
 """
 
 from __future__ import annotations
@@ -14,9 +15,12 @@ from jcomps import experiment, report
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("run_dir", help="a directory written by experiments/run_sequence.py")
+    parser.add_argument("--baseline", default=None, metavar="METHOD",
+                        help="the method the significance table compares every other one with (default: comps when "
+                             "the run has it)")
     args = parser.parse_args(argv)
     try:
-        results = report.write(args.run_dir)
+        results = report.write(args.run_dir, baseline=args.baseline)
     except experiment.RunError as err:
         print(f"error: {err}", file=sys.stderr)
         sys.exit(2)

@@ -62,6 +62,13 @@ import numpy as np  # noqa: E402
 from jcomps import cli, continual, envs, experiment, methods, report  # noqa: E402
 from jcomps import grid as grids  # noqa: E402
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from progress import Console  # noqa: E402
+
+# This process's compiled programs: a resume or a second run in the same process (the tests) does not compile
+# again. The library keeps no such cache of its own.
+PROGRAMS = experiment.Programs()
+
 
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -79,6 +86,9 @@ def parse_args(argv=None):
                              "learning_rate=0.01,0.001 or hidden_sizes=128x64,64x32. Continuous hyperparameters run "
                              "in one compiled program; fields that change shapes run one program per value. On "
                              "--resume the stored grid is used (a different one is refused)")
+    parser.add_argument("--baseline", default=None, metavar="METHOD",
+                        help="the method the significance table compares every other one with (default: comps when "
+                             "it runs); one of --methods")
     parser.add_argument("--set", dest="set_specs", action="append", default=None, metavar="METHOD.FIELD=VALUE",
                         help="change one method's config alone, by the field's full path (repeatable), e.g. --set "
                              "gmps_ppo_is.meta.inner_learning_rate=0.01 or --set comps.ppo.hidden_sizes=64x32; wins "
@@ -99,6 +109,8 @@ def parse_args(argv=None):
         _grid(args)
     except (ValueError, TypeError) as err:
         parser.error(str(err))
+    if args.baseline is not None and args.baseline not in args.run.methods:
+        parser.error(f"--baseline {args.baseline}: not one of --methods ({', '.join(args.run.methods)})")
     available = len(envs.make(args.run.family).task_values)
     if args.run.num_tasks > available:
         parser.error(f"--num-tasks must be in [1, {available}] for {args.run.family}, got {args.run.num_tasks}")
@@ -172,20 +184,21 @@ def _from_stored(args):
 def main(argv=None):
     args = parse_args(argv)
     try:
-        experiment.run(args.out, args.run, args.eval, args.configs, resume=args.resume, tensorboard=args.tensorboard,
-                       log=lambda line: print(line, flush=True), grid=args.grid, overrides=args.overrides)
-        results = report.write(args.out)
+        console = Console(lambda line: print(line, flush=True), args.out, args.tensorboard)
+        experiment.run(args.out, args.run, args.eval, args.configs, resume=args.resume, progress_fn=console,
+                       grid=args.grid, overrides=args.overrides, programs=PROGRAMS)
+        results = report.write(args.out, baseline=args.baseline)
     except experiment.RunError as err:
         print(f"error: {err}", file=sys.stderr)
         sys.exit(2)
     print(f"\nmean iterations-to-success per task ({args.run.seeds} seeds):")
     for name, m in results["methods"].items():
-        print(f"  {name:10s} {np.round(m['iterations_to_success_mean'], 1).tolist()}")
+        print(f"  {name:14s} {np.round(m['iterations_to_success_mean'], 1).tolist()}")
     best = results.get("best", {m: m for m in results["methods"]})
     if "best" in results:
         print("best grid point per method: " + ", ".join(best.values()))
     half = args.run.num_tasks // 2
-    if "comps" in best and half >= 1:
+    if half >= 1:
         later = {n: float(np.mean(np.asarray(results["methods"][n]["iterations_to_success"])[:, half:]))
                  for n in best.values()}
         print(f"mean over tasks {half + 1}-{args.run.num_tasks}: " +

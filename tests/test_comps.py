@@ -41,7 +41,8 @@ def test_stores_fill_one_slot_per_task(run):
 def test_the_meta_step_produces_the_next_tasks_policy(run):
     _, state0, s1, _, _ = run
     chex.assert_trees_all_equal(s1.params.policy, s1.meta.policy)
-    assert not np.allclose(np.asarray(s1.params.policy["mean"][0]["w"]), np.asarray(state0.params.policy["mean"][0]["w"]))
+    w0, w1 = state0.params.policy["mean"][0]["w"], s1.params.policy["mean"][0]["w"]
+    assert not np.allclose(np.asarray(w1), np.asarray(w0))
 
 
 def test_metrics_have_the_shared_shape(run):
@@ -63,3 +64,17 @@ def test_comps_in_the_continual_loop():
     _, metrics = continual.run_seeds(methods.make("comps", family, config), envs.sequence(family, num_tasks=2),
                                      jax.random.split(jax.random.PRNGKey(0), 2))
     chex.assert_shape(metrics.iterations, (2, 2))
+
+
+def test_learning_past_max_tasks_is_refused():
+    family = envs.make("point_goal")
+    config = comps.CoMPSConfig(ppo=SMALL_PPO, meta=SMALL_META, max_tasks=2, num_skilled=2, num_offpolicy=3)
+    method = methods.make("comps", family, config)
+    with pytest.raises(ValueError, match="max_tasks=2"):
+        continual.run_sequence(method, envs.sequence(family, num_tasks=3), jax.random.PRNGKey(0))
+    with pytest.raises(ValueError, match="max_tasks=2"):
+        continual.run_chunk(method, continual.EvalConfig(), method.init(jax.random.PRNGKey(0)),
+                            envs.sequence(family, num_tasks=3), 0, 1, jax.random.PRNGKey(1))
+    full = method.init(jax.random.PRNGKey(0))._replace(task_index=jax.numpy.int32(2))
+    with pytest.raises(ValueError, match="past max_tasks=2"):
+        method.learn_task(full, envs.task_at(family, 0))

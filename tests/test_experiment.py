@@ -9,12 +9,14 @@ import jax
 import numpy as np
 import pytest
 
-from jcomps import continual, experiment, report
+from jcomps import checkpoint, continual, experiment, report, results
+from jcomps.methods.base import TaskMetrics
+from jcomps.ppo import IterationMetrics
 
 TINY = ["--budget", "3", "--num-trajectories", "2", "--hidden-sizes", "8", "--num-updates", "1",
         "--minibatch-size", "16", "--num-meta-steps", "1", "--num-outer-steps", "2", "--inner-trajectories", "2",
         "--skilled-trajectories", "2", "--num-skilled", "2", "--num-offpolicy", "4", "--heldout-iterations", "1",
-        "--backward-tasks", "2"]
+        "--heldout-budget", "3", "--backward-tasks", "2"]
 RUN = ["--methods", "comps", "ppo_tl", "--num-tasks", "3", "--seeds", "2", "--chunk-tasks", "1"]
 
 
@@ -49,13 +51,21 @@ def test_results_schema(full_run):
         h = m["heldout"]
         assert h["after_tasks"] == [0, 1, 2, 3] and h["adaptation_iterations"] == 1
         assert np.asarray(h["adapted_return"]).shape == (2, 4)
+        # Iterations-to-success on each of the 8 held-out tasks, capped at --heldout-budget 3.
+        held = np.asarray(h["iterations_to_success"])
+        assert h["budget"] == 3 and held.shape == (2, 4, 8) and held.min() >= 1 and held.max() <= 3
+        np.testing.assert_array_equal(np.asarray(h["solved"]) | (held == 3), True)
+        assert [q["tasks"] for q in m["iqm"]] == [[1, 1], [2, 3]]
+        assert all(q["ci"][0] <= q["iqm"] <= q["ci"][1] for q in m["iqm"])
         assert m["devices"] == 2 and m["nonfinite_iterations"] == 0
     sig = results["significance"]["against"]["ppo_tl"]
     assert sig["bootstrap_samples"] == 30_000 and set(sig) >= {"p_ttest", "p_bootstrap", "t"}
     for plot in ("iterations_to_success", "lifelong_return", "per_task_return", "backward_transfer",
                  "heldout_meta_test"):
         assert (full_run / "plots" / f"{plot}.png").stat().st_size > 1000
-    assert (full_run / "significance.md").read_text().startswith("Statistic")
+    table = (full_run / "significance.md").read_text()
+    assert table.startswith("Statistic") and "| comps vs |" in table and "Interquartile mean (IQM)" in table
+    assert results["significance"]["baseline"] == "comps"
 
 
 def test_killed_and_resumed_run_equals_the_uninterrupted_one(runner, full_run, tmp_path):
@@ -64,7 +74,7 @@ def test_killed_and_resumed_run_equals_the_uninterrupted_one(runner, full_run, t
     experiment.open_run_dir(str(out), experiment.describe(args.run, args.eval, args.configs), resume=False)
     # "Kill" comps after its first chunk: its checkpoint 1 exists, nothing else.
     assert experiment.run_method(str(out), "comps", args.run, args.eval, args.configs["comps"], resume=False,
-                                 log=lambda _: None, stop_after_chunks=1) is None
+                                 programs=runner.PROGRAMS, stop_after_chunks=1) is None
     assert sorted(os.listdir(out / "checkpoints" / "comps")) == ["1"]
     runner.main(["--out", str(out), "--resume"])
     for name in ("comps", "ppo_tl"):
@@ -79,14 +89,15 @@ def test_unreadable_checkpoint_falls_back_to_the_one_before(runner, full_run, tm
     args = runner.parse_args(TINY + RUN + ["--out", str(out)])
     experiment.open_run_dir(str(out), experiment.describe(args.run, args.eval, args.configs), resume=False)
     experiment.run_method(str(out), "ppo_tl", args.run, args.eval, args.configs["ppo_tl"], resume=False,
-                          log=lambda _: None, stop_after_chunks=2)
+                          programs=runner.PROGRAMS, stop_after_chunks=2)
     for path in (out / "checkpoints" / "ppo_tl" / "2").rglob("*"):
         if path.is_file():
             path.write_bytes(b"garbage")
-    logs = []
+    events = []
     experiment.run_method(str(out), "ppo_tl", args.run, args.eval, args.configs["ppo_tl"], resume=True,
-                          log=logs.append)
-    assert any("cannot be read" in line for line in logs) and any("resumed from checkpoint 1" in line for line in logs)
+                          progress_fn=events.append, programs=runner.PROGRAMS)
+    assert any(e["event"] == "warning" and "cannot be read" in e["message"] for e in events)
+    assert any(e["event"] == "resumed" and e["step"] == 1 for e in events)
     a, b = _raw(full_run, "ppo_tl"), _raw(out, "ppo_tl")
     for key in a:
         np.testing.assert_array_equal(a[key], b[key], err_msg=key)
@@ -113,6 +124,30 @@ def test_report_regenerates_the_results(full_run, tmp_path):
     a = json.loads((full_run / "results.json").read_text())
     b = json.loads((copy / "results.json").read_text())
     assert a == b and (copy / "plots" / "iterations_to_success.png").exists()
+    # Any method of the run can be the reference of the significance table.
+    other = report.write(str(copy), baseline="ppo_tl")["significance"]
+    assert other["baseline"] == "ppo_tl" and list(other["against"]) == ["comps"]
+    assert other["against"]["comps"]["mean_a"] == a["significance"]["against"]["ppo_tl"]["mean_b"]
+    assert "| ppo_tl vs |" in (copy / "significance.md").read_text()
+    with pytest.raises(experiment.RunError, match="--baseline gmps: not a method of this run; its methods: comps"):
+        report.write(str(copy), baseline="gmps")
+
+
+def test_iqm_and_its_stratified_bootstrap_interval():
+    rng = np.random.default_rng(0)
+    scores = rng.normal(50.0, 10.0, (5, 4))
+    q = report.iqm_ci(scores, samples=500)
+    flat = np.sort(scores.reshape(-1))
+    assert q["iqm"] == pytest.approx(flat[5:15].mean())  # the middle 50% of 20 values
+    assert q["ci"][0] < q["iqm"] < q["ci"][1]
+    # Outliers barely move the IQM (they move the mean).
+    spiked = scores.copy()
+    spiked[0, 0] = 1e6
+    assert abs(report.iqm(spiked) - q["iqm"]) < 5.0
+    # Seeds are resampled within each task: when every seed scores the same on a task, every resample is the same.
+    same = np.tile(np.arange(4.0), (5, 1))
+    assert report.iqm_ci(same, samples=200)["ci"] == [pytest.approx(1.5)] * 2
+    assert report.sequence_halves(6) == [(1, 3), (4, 6)] and report.sequence_halves(5) == [(1, 2), (3, 5)]
 
 
 @pytest.mark.parametrize("argv,message", [
@@ -130,6 +165,8 @@ def test_report_regenerates_the_results(full_run, tmp_path):
     (["--backward-tasks", "-1"], "backward_tasks=-1"),
     (["--devices", "0"], "--devices must be >= 1"),
     (["--resume"], "--resume needs --out"),
+    (["--methods", "comps", "ppo_tl", "--baseline", "gmps"],
+     r"--baseline gmps: not one of --methods \(comps, ppo_tl\)"),
 ])
 def test_bad_options_exit_2_with_a_message(runner, argv, message, capsys):
     extra = [] if "--resume" in argv else ["--out", "/nonexistent/x"]
@@ -152,6 +189,11 @@ def test_run_directory_errors_exit_2_and_keep_earlier_results(runner, full_run, 
     with pytest.raises(SystemExit) as info:
         runner.main(["--out", str(full_run), "--resume", "--seeds", "3"])
     assert info.value.code == 2 and "seeds" in capsys.readouterr().err
+    # An impossible or unwritable --out.
+    for bad in ("/proc/x", str(full_run / "results.json" / "inside")):
+        with pytest.raises(SystemExit) as info:
+            runner.main(TINY + RUN + ["--out", bad])
+        assert info.value.code == 2 and f"--out {bad}: cannot create the run directory" in capsys.readouterr().err
     # --resume of a directory that does not exist.
     with pytest.raises(SystemExit) as info:
         runner.main(["--out", str(tmp_path / "missing"), "--resume"])
@@ -181,9 +223,11 @@ def test_backward_transfer_formula():
     # One seed, 3 tasks, budget 2: task j's first and last returns a_j, b_j; after task 2 the policy scores c.
     ret = np.array([[[0.0, 10.0], [2.0, 6.0], [0.0, 0.0]]])
     valid = np.array([[[True, True], [True, True], [True, False]]])
-    raw = {"iter.mean_return": ret, "iter.valid": valid, "task.iterations": np.array([[2, 2, 1]]),
-           "backward_returns": np.array([[[0.0, 0.0], [5.0, 0.0], [4.0, 5.0]]]),
-           "backward_valid": np.array([[[False, False], [True, False], [True, True]]])}
+    zeros = np.zeros_like(ret)
+    task = TaskMetrics(np.array([[2, 2, 1]]), np.ones((1, 3), bool),
+                       IterationMetrics(ret, zeros, zeros, zeros, zeros, zeros, zeros, valid))
+    raw = results.RawResults(task, np.array([[[0.0, 0.0], [5.0, 0.0], [4.0, 5.0]]]),
+                             np.array([[[False, False], [True, False], [True, True]]]), None, np.zeros(1), 0.0, 1)
     bt = report.backward_transfer(raw)
     assert np.isnan(bt[0, 0])
     assert bt[0, 1] == pytest.approx((5.0 - 0.0) / (10.0 - 0.0))
@@ -194,11 +238,14 @@ def test_backward_transfer_formula():
 def test_eval_config_rejects_bad_values():
     with pytest.raises(ValueError, match="heldout_iterations"):
         continual.EvalConfig(heldout_iterations=-1)
+    with pytest.raises(ValueError, match="heldout_budget"):
+        continual.EvalConfig(heldout_budget=-1)
 
 
 def test_seeds_fill_the_devices():
     assert experiment.num_devices(4, 2) == 2 and experiment.num_devices(3, 2) == 2 and experiment.num_devices(1, 8) == 1
-    assert experiment.padded_seeds(3, 2) == 4 and experiment.padded_seeds(4, 2) == 4 and experiment.padded_seeds(5, 1) == 5
+    assert experiment.padded_seeds(3, 2) == 4 and experiment.padded_seeds(4, 2) == 4
+    assert experiment.padded_seeds(5, 1) == 5
     assert experiment.padded_seeds(6, 4) == 8
 
 
@@ -231,16 +278,16 @@ def test_checkpoint_round_trip_with_empty_metrics(tmp_path):
     states = {"w": np.arange(6, dtype=np.float32).reshape(2, 3)}
     per_task = {"returns": np.ones((2, 4), np.float32), "backward": np.zeros((2, 4, 0), np.float32)}
     heldout = (np.full((2, 1, 3), 0.5, np.float32),)
-    checkpoints = experiment.Checkpoints(str(tmp_path / "ckpt"))
-    checkpoints.save(1, experiment._record(states, per_task, heldout, 1, 2.5))
-    like = experiment._record(jax.tree.map(np.zeros_like, states), jax.tree.map(np.zeros_like, per_task),
+    checkpoints = checkpoint.Checkpoints(str(tmp_path / "ckpt"))
+    checkpoints.save(1, checkpoint.record(states, per_task, heldout, 1, 2.5))
+    like = checkpoint.record(jax.tree.map(np.zeros_like, states), jax.tree.map(np.zeros_like, per_task),
                               jax.tree.map(np.zeros_like, heldout), 0, 0.0)
     step, tree = checkpoints.restore_latest(like, print)
     assert step == 1 and int(tree["counters"]["next_chunk"]) == 1
-    restored = experiment._unflatten(per_task, tree["per_task"])
+    restored = checkpoint.unflatten(per_task, tree["per_task"])
     np.testing.assert_array_equal(restored["returns"], per_task["returns"])
     assert restored["backward"].shape == (2, 4, 0)
-    np.testing.assert_array_equal(experiment._unflatten(states, tree["states"])["w"], states["w"])
+    np.testing.assert_array_equal(checkpoint.unflatten(states, tree["states"])["w"], states["w"])
 
 
 def _keys_drawn_from(key) -> set:

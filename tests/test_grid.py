@@ -14,7 +14,7 @@ from jcomps import continual, envs, experiment, grid, methods
 from jcomps.methods import comps, ppo_tl
 
 TINY = ["--budget", "3", "--num-trajectories", "2", "--num-updates", "1", "--minibatch-size", "16",
-        "--heldout-iterations", "1", "--backward-tasks", "2"]
+        "--heldout-iterations", "1", "--heldout-budget", "3", "--backward-tasks", "2"]
 RUN = ["--methods", "ppo_tl", "--num-tasks", "3", "--seeds", "2", "--chunk-tasks", "1"]
 # A traced axis (learning_rate: one program) and a shape-changing one (hidden_sizes: one program per value).
 GRID = ["--grid", "learning_rate=0.01,0.001", "--grid", "hidden_sizes=8,4"]
@@ -105,24 +105,24 @@ def test_best_is_the_lowest_iterations_then_the_higher_return():
     assert grid.best(entries, its, returns) == {"m": "c", "n": "e"}
 
 
-def test_progress_line_names_the_member_behind():
+def test_progress_line_names_the_member_behind(console):
     lines = []
-    progress = experiment.Progress("ppo_tl, 2 grid points", 2, 3, 0, lines.append, interval=0.0,
+    progress = console.Progress("ppo_tl, 2 grid points", 2, 3, 0, lines.append, interval=0.0,
                                    members=["ppo_tl[learning_rate=0.01] seed 0", "ppo_tl[learning_rate=0.001] seed 0"])
-    progress((0, 1), 2, 0.5, 0.0)
-    progress((1, 0), 3, 0.1, 0.0)
+    progress.record_iteration(0, 1, 2, 0.5)
+    progress.record_iteration(1, 0, 3, 0.1)
     assert lines[-1].startswith("[ppo_tl, 2 grid points] task 1-2/3 iteration 3")
     assert "behind: ppo_tl[learning_rate=0.001] seed 0 (task 1)" in lines[-1]
 
 
-def test_progress_behind_is_the_member_still_iterating():
+def test_progress_behind_is_the_member_still_iterating(console):
     """A member that solved its task keeps reporting the iteration it stopped at; the one still running is named."""
     lines = []
-    progress = experiment.Progress("ppo, 2 grid points", 2, 3, 0, lines.append, interval=0.0,
+    progress = console.Progress("ppo, 2 grid points", 2, 3, 0, lines.append, interval=0.0,
                                    members=["ppo[learning_rate=0.0003] seed 0", "ppo[learning_rate=0.0001] seed 0"])
     for it in range(1, 41):
-        progress((0, 0), min(it, 5), 0.3, 0.0)  # solved at iteration 5, frozen there
-        progress((1, 0), it, 0.1, 0.0)
+        progress.record_iteration(0, 0, min(it, 5), 0.3)  # solved at iteration 5, frozen there
+        progress.record_iteration(1, 0, it, 0.1)
     assert "iteration 40" in lines[-1]
     assert "behind: ppo[learning_rate=0.0001] seed 0 (task 1)" in lines[-1]
 
@@ -133,7 +133,7 @@ def test_every_traced_field_traces(name):
     only, not compiled)."""
     config = methods.config_class(name)(**({"max_tasks": 2} if name == "comps" else {}))
     traced = tuple(sorted(grid.traced_fields(type(config))))
-    program = experiment._program(name, "point_goal", config, continual.EvalConfig(), 1, 1, traced)
+    program = experiment.Programs().get(name, "point_goal", config, continual.EvalConfig(), 1, 1, traced)
     abstract = lambda tree: jax.tree.map(  # noqa: E731
         lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=program.sharding), tree)
     values = {f: jnp.full((1,), 0.5, jnp.float32) for f in traced}
@@ -188,7 +188,7 @@ def test_traced_values_differ_in_one_program_and_match_separate_runs(grid_run, p
     seed, so XLA rounds some sums and products differently). Integer results (iterations, solved, validity) are
     equal."""
     a, b = _raw(grid_run, KEYS[0]), _raw(grid_run, KEYS[2])
-    assert not np.allclose(a["iter.value_loss"], b["iter.value_loss"])
+    assert not np.allclose(a["task.per_iteration.value_loss"], b["task.per_iteration.value_loss"])
     plain, member = _raw(plain_run, "ppo_tl"), _raw(grid_run, KEYS[2])
     assert plain.keys() == member.keys()
     for key in plain:
@@ -209,9 +209,9 @@ def test_one_point_grid_equals_the_run_without_a_grid(runner, plain_run, tmp_pat
         np.testing.assert_array_equal(a[k], b[k], err_msg=k)
 
 
-def test_grid_program_traced_once(grid_run):
+def test_grid_program_traced_once(runner, grid_run):
     """Each program of the grid run (3 chunks) traced its chunk, init and held-out functions once."""
-    programs = [p for k, p in experiment._PROGRAMS.items() if k[0] == "ppo_tl" and k[3] == ("learning_rate",)]
+    programs = [p for k, p in runner.PROGRAMS.items() if k[0] == "ppo_tl" and k[3] == ("learning_rate",)]
     assert len(programs) == 2
     for p in programs:
         assert p.traces == {"init": 1, "run_chunk": 1, "heldout": 1}
@@ -222,7 +222,7 @@ def test_killed_and_resumed_grid_run_equals_the_uninterrupted_one(runner, grid_r
     args = runner.parse_args(TINY + RUN + GRID + ["--out", str(out)])
     experiment.open_run_dir(str(out), experiment.describe(args.run, args.eval, args.configs, args.grid), resume=False)
     first = grid.programs("ppo_tl", args.configs["ppo_tl"], args.grid)[0]
-    assert experiment.run_program(str(out), first, args.run, args.eval, resume=False, log=lambda _: None,
+    assert experiment.run_program(str(out), first, args.run, args.eval, resume=False, programs=runner.PROGRAMS,
                                   stop_after_chunks=1) is None
     assert sorted(os.listdir(out / "checkpoints" / "ppo_tl@hidden_sizes=8")) == ["1"]
     runner.main(["--out", str(out), "--resume"])

@@ -10,7 +10,7 @@ import numpy as np
 import optax
 import pytest
 
-from jcomps import buffers, meta, networks
+from jcomps import buffers, meta, networks, progress
 from jcomps.acting import Trajectory
 
 T, OBS, ACT, SLOTS, SKILLED, OFF = 4, 2, 1, 3, 3, 4
@@ -97,8 +97,10 @@ def test_meta_training_lowers_the_outer_bc_loss():
     batches = meta.sample_batches(CONFIG, stores, jax.random.PRNGKey(7))
     before = meta.meta_loss(CONFIG, policy, value, batches, stores.task_valid)
     calls = []
-    hook = lambda context, step, steps, loss: calls.append((int(context), int(step), int(steps), float(loss)))  # noqa: E731
-    new, losses = jax.jit(lambda s, r: meta.meta_train(CONFIG, s, stores, r, on_step=hook, context=jnp.int32(4)))(
+    hook = progress.host(lambda m: calls.append((int(m["task"]), int(m["meta_step"]), int(m["meta_steps"]),
+                                                 float(m["bc_loss"]))))
+    report = progress.with_fields(hook, task=jnp.int32(4))
+    new, losses = jax.jit(lambda s, r: meta.meta_train(CONFIG, s, stores, r, progress_fn=report))(
         state, jax.random.PRNGKey(1))
     jax.effects_barrier()
     after = meta.meta_loss(CONFIG, new.policy, new.value, batches, stores.task_valid)
@@ -190,8 +192,8 @@ def test_sequential_outer_update_follows_algorithm_1():
     config = dataclasses.replace(CONFIG, num_meta_steps=2, num_outer_steps=2, outer_update="sequential")
     state = _meta_state(policy, value, config)
     calls = []
-    hook = lambda context, step, steps, loss: calls.append((int(step), int(steps)))  # noqa: E731
-    new, losses = jax.jit(lambda s: meta.meta_train(config, s, stores, jax.random.PRNGKey(4), on_step=hook))(state)
+    hook = progress.host(lambda m: calls.append((int(m["meta_step"]), int(m["meta_steps"]))))
+    new, losses = jax.jit(lambda s: meta.meta_train(config, s, stores, jax.random.PRNGKey(4), progress_fn=hook))(state)
     jax.effects_barrier()
     p_opt, v_opt = meta.optimizers(config)
     keys = jax.random.split(jax.random.PRNGKey(4), 4).reshape(2, 2, -1)

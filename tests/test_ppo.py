@@ -236,7 +236,9 @@ def test_vanilla_surrogate_is_the_clipped_one_on_policy():
     batch = {"obs": obs, "action": action, "log_prob": networks.policy_log_prob(params.policy, obs, action),
              "valid": jnp.ones((40,), jnp.float32), "advantage": jnp.asarray(rng.normal(size=40), jnp.float32),
              "target": jnp.zeros((40,), jnp.float32)}
-    grad = lambda b, s: jax.grad(lambda p: ppo.ppo_loss(p, b, dataclasses.replace(SMALL, surrogate=s))[0])(params)  # noqa: E731
+    def grad(b, surrogate):
+        return jax.grad(lambda p: ppo.ppo_loss(p, b, dataclasses.replace(SMALL, surrogate=surrogate))[0])(params)
+
     chex.assert_trees_all_close(grad(batch, "vanilla"), grad(batch, "clipped"), rtol=1e-5, atol=1e-7)
     stale = {**batch, "log_prob": batch["log_prob"] - 0.3}
     diff = jax.tree.map(lambda a, b: float(jnp.max(jnp.abs(a - b))), grad(stale, "vanilla"), grad(stale, "clipped"))

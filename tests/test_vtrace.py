@@ -8,7 +8,8 @@ import numpy as np
 from hypothesis import given, strategies as st
 from hypothesis.extra import numpy as hnp
 
-from jcomps.vtrace import vtrace
+from jcomps import ppo
+from jcomps.vtrace import discounted_returns, vtrace
 
 
 def _inputs(seed, T=6, B=3, scale=1.0):
@@ -107,3 +108,27 @@ def test_clipped_weights_never_exceed_their_bounds(log_rhos, rho_bar, c_bar, pg_
     assert np.all(np.asarray(out.clipped_rhos) >= 0)
     ref = _reference(**x, rho_bar=rho_bar, c_bar=c_bar, lambda_=1.0)
     np.testing.assert_allclose(np.asarray(out.vs), ref, rtol=1e-3, atol=1e-3)
+
+
+def test_gae_is_on_policy_vtrace_with_traces_lambda():
+    # GAE(λ) advantages are V-trace's v_s − V(x_s) with every importance weight 1 and traces c = λ; the targets are
+    # v_s. Terminations (dones) are the zero discounts.
+    x = _inputs(11)
+    dones = (x["discounts"] == 0).astype(np.float32)
+    for lambda_ in (0.0, 0.5, 0.95, 1.0):
+        adv, targets = ppo.gae(x["rewards"], x["values"], x["bootstrap_value"], dones, 0.9, lambda_)
+        out = vtrace(x["values"], x["bootstrap_value"], x["rewards"], 0.9 * (1 - dones), np.zeros_like(dones),
+                     lambda_=lambda_)
+        np.testing.assert_allclose(targets, out.vs, rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(adv, out.vs - x["values"], rtol=1e-5, atol=1e-5)
+
+
+def test_discounted_returns_are_on_policy_vtrace_with_lambda_one():
+    # With λ = 1 and every weight 1 the values telescope away: v_s is the bootstrapped discounted return.
+    x = _inputs(12)
+    returns = discounted_returns(x["rewards"], x["discounts"], x["bootstrap_value"])
+    for values in (x["values"], np.zeros_like(x["values"]), 10.0 * x["values"]):
+        out = vtrace(values, x["bootstrap_value"], x["rewards"], x["discounts"], np.zeros_like(values))
+        np.testing.assert_allclose(returns, out.vs, rtol=1e-5, atol=1e-4)
+    # And by hand: G_{T-1} = r + γ·bootstrap.
+    np.testing.assert_allclose(returns[-1], x["rewards"][-1] + x["discounts"][-1] * x["bootstrap_value"], rtol=1e-6)

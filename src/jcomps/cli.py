@@ -173,7 +173,8 @@ def parse_overrides(specs, configs: dict) -> dict:
         target, sep, text = spec.partition("=")
         parts = [p.strip().replace("-", "_") for p in target.split(".")]
         if not sep or len(parts) < 2 or not all(parts):
-            raise ValueError(f"--set {spec!r}: expected METHOD.FIELD[.FIELD]=VALUE, e.g. comps.meta.inner_learning_rate=0.01")
+            raise ValueError(f"--set {spec!r}: expected METHOD.FIELD[.FIELD]=VALUE, e.g. "
+                             "comps.meta.inner_learning_rate=0.01")
         method, path = parts[0], parts[1:]
         where = f"--set {target.strip()}"
         if method not in configs:

@@ -10,39 +10,52 @@ compiled program.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable, NamedTuple, Optional
+from typing import Any, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jcomps import acting, ppo
+from jcomps.numerics import check_field
+from jcomps.progress import ProgressFn, with_fields
 from jcomps.methods.base import Method, TaskMetrics
 
-ProgressFn = Callable[[jax.Array, jax.Array, TaskMetrics], None]
+def check_capacity(method: Method, num_tasks: int, start=0) -> None:
+    """Raises ValueError if learning ``num_tasks`` tasks from task index ``start`` would pass the method's
+    ``max_tasks`` (its experience-store slots): the stores would otherwise silently overwrite their last slot.
+    A traced ``start`` is not checked (the sequence length still is)."""
+    max_tasks = getattr(method.config, "max_tasks", None)
+    if max_tasks is None:
+        return
+    first = 0 if isinstance(start, jax.core.Tracer) else int(np.max(np.asarray(start)))
+    if first + num_tasks > max_tasks:
+        raise ValueError(f"invalid config value max_tasks={max_tasks}; allowed: at least the tasks learnt "
+                         f"({first} + {num_tasks}): {method.name} keeps one experience slot per task")
 
 
-def run_tasks(method: Method, state: Any, tasks, progress: Optional[ProgressFn] = None, seed_index=0):
+def run_tasks(method: Method, state: Any, tasks, progress_fn: Optional[ProgressFn] = None):
     """Learns ``tasks`` (a task pytree with a leading task axis) in order, starting from ``state``.
 
     ``learn_task`` is wrapped in ``jax.jit`` so that it is traced once per method and shapes, however long the
-    sequence and however it is chunked. ``progress(seed_index, task_index, metrics)``, if given, is called on
-    the host after each task through ``jax.debug.callback`` (under ``vmap`` once per seed, in no fixed order;
-    ``seed_index`` says which). Returns (final state, TaskMetrics with a leading task axis).
+    sequence and however it is chunked. ``progress_fn`` (``jcomps.progress``), if given, gets ``{"task",
+    "task_iterations", "solved"}`` after each task. Returns (final state, TaskMetrics with a leading task axis).
     """
+    check_capacity(method, jax.tree.leaves(tasks)[0].shape[0], state.task_index)
     learn = jax.jit(method.learn_task)
 
     def body(state, task):
-        new_state, metrics = learn(state, task, (seed_index, state.task_index))
-        if progress is not None:
-            jax.debug.callback(progress, seed_index, state.task_index, metrics)
+        new_state, metrics = learn(state, task)
+        if progress_fn is not None:
+            progress_fn({"task": state.task_index, "task_iterations": metrics.iterations, "solved": metrics.solved})
         return new_state, metrics
 
     return jax.lax.scan(body, state, tasks)
 
 
-def run_sequence(method: Method, tasks, rng: jax.Array, progress: Optional[ProgressFn] = None, seed_index=0):
+def run_sequence(method: Method, tasks, rng: jax.Array, progress_fn: Optional[ProgressFn] = None):
     """``method.init(rng)`` then ``run_tasks``; returns (final state, TaskMetrics[num_tasks])."""
-    return run_tasks(method, method.init(rng), tasks, progress, seed_index)
+    return run_tasks(method, method.init(rng), tasks, progress_fn)
 
 
 def init_seeds(method: Method, rngs: jax.Array, hparams: Optional[dict] = None):
@@ -63,16 +76,17 @@ def init_seeds(method: Method, rngs: jax.Array, hparams: Optional[dict] = None):
     return jax.lax.map(lambda x: method(x[1]).init(x[0]), (rngs, hparams))
 
 
-def run_seeds(method: Method, tasks, rngs: jax.Array, progress: Optional[ProgressFn] = None,
+def run_seeds(method: Method, tasks, rngs: jax.Array, progress_fn: Optional[ProgressFn] = None,
               tasks_per_seed: bool = False):
     """``run_sequence`` vmapped over ``rngs`` (a batch of S keys), jitted as one program.
 
     ``tasks`` is shared by all seeds, or, with ``tasks_per_seed``, has a leading seed axis (stationary
-    sequences shuffled per seed). Returns (states, TaskMetrics) with a leading seed axis.
+    sequences shuffled per seed). ``progress_fn`` gets each seed's per-task metrics with its index ``seed``
+    added. Returns (states, TaskMetrics) with a leading seed axis.
     """
     def run(tasks, rngs, seed_index):
         states = init_seeds(method, rngs)
-        fn = jax.vmap(lambda t, s, i: run_tasks(method, s, t, progress, i),
+        fn = jax.vmap(lambda t, s, i: run_tasks(method, s, t, with_fields(progress_fn, seed=i)),
                       in_axes=(0 if tasks_per_seed else None, 0, 0))
         return fn(tasks, states, seed_index)
 
@@ -86,12 +100,22 @@ class EvalConfig:
     backward_tasks: int = 3
     """After each task, the policy is evaluated on this many previous tasks (backward transfer); 0: off."""
     heldout_iterations: int = 5
-    """PPO iterations of adaptation on each held-out task, from the current policy, after every chunk."""
+    """Length of the held-out return curve: PPO iterations of adaptation on each held-out task, from the current
+    policy, after every chunk (no learning is kept)."""
+    heldout_budget: int = 50
+    """Cap of the held-out iterations-to-success (the paper's measure, on tasks never trained on): the same
+    adaptation runs this many iterations (at least ``heldout_iterations`` + 1); 0: not measured."""
 
     def __post_init__(self):
-        ppo.check_field(self.backward_tasks >= 0, "backward_tasks", self.backward_tasks, "an integer >= 0")
-        ppo.check_field(self.heldout_iterations >= 0, "heldout_iterations", self.heldout_iterations,
+        check_field(self.backward_tasks >= 0, "backward_tasks", self.backward_tasks, "an integer >= 0")
+        check_field(self.heldout_iterations >= 0, "heldout_iterations", self.heldout_iterations,
                         "an integer >= 0")
+        check_field(self.heldout_budget >= 0, "heldout_budget", self.heldout_budget, "an integer >= 0 (0: off)")
+
+    @property
+    def heldout_run(self) -> int:
+        """Iterations of each held-out adaptation run."""
+        return max(self.heldout_iterations + 1, self.heldout_budget)
 
 
 class ChunkMetrics(NamedTuple):
@@ -116,8 +140,7 @@ def _mean_return(method: Method, policy, task, rng):
     return jnp.mean(jnp.sum(traj.reward, axis=0))
 
 
-def run_chunk(method: Method, eval_config: EvalConfig, state, sequence, start, chunk: int, eval_key,
-              seed_index=0):
+def run_chunk(method: Method, eval_config: EvalConfig, state, sequence, start, chunk: int, eval_key):
     """Learns tasks ``start … start + chunk − 1`` of ``sequence`` (a task pytree [num_tasks]) from ``state``.
 
     Positions past the end of the sequence are skipped (a ``lax.cond`` on ``start``, which must not be
@@ -126,6 +149,7 @@ def run_chunk(method: Method, eval_config: EvalConfig, state, sequence, start, c
     any chunking. Returns (state, ChunkMetrics).
     """
     num_tasks = jax.tree.leaves(sequence)[0].shape[0]
+    check_capacity(method, num_tasks)
     learn = jax.jit(method.learn_task)
     k = eval_config.backward_tasks
 
@@ -133,7 +157,7 @@ def run_chunk(method: Method, eval_config: EvalConfig, state, sequence, start, c
         return jax.tree.map(lambda x: jax.lax.dynamic_index_in_dim(x, i, keepdims=False), sequence)
 
     def do(state, i):
-        new_state, metrics = learn(state, task_at(i), (seed_index, i))
+        new_state, metrics = learn(state, task_at(i))
         prev = i - 1 - jnp.arange(k)
         keys = jax.vmap(lambda d: jax.random.fold_in(jax.random.fold_in(eval_key, i), d))(jnp.arange(k))
         returns = jax.vmap(lambda j, key: _mean_return(method, new_state.params.policy, task_at(jnp.maximum(j, 0)),
@@ -149,20 +173,37 @@ def run_chunk(method: Method, eval_config: EvalConfig, state, sequence, start, c
     return jax.lax.scan(body, state, jnp.arange(chunk, dtype=jnp.int32))
 
 
-def heldout_adaptation(method: Method, eval_config: EvalConfig, state, heldout_tasks, rng):
-    """Meta-test: PPO from the state's policy on every held-out task for a fixed budget, no early stop.
+class HeldoutMetrics(NamedTuple):
+    """Held-out meta-test of one policy (``heldout_adaptation``); leading axis [num_heldout].
 
-    Returns (mean_return, success_rate), each f32[num_heldout, heldout_iterations + 1]: entry 0 is the policy
-    as it is (zero-shot), entry n the policy after n PPO iterations. The state is not changed.
+    Attributes:
+      mean_return, success_rate: f32[num_heldout, heldout_iterations + 1]; entry 0 is the policy as it is
+        (zero-shot), entry n the policy after n PPO iterations.
+      iterations: i32[num_heldout], iterations-to-success within ``heldout_run`` iterations (that cap if never
+        reached; 0 when ``heldout_budget`` is 0).
+      solved: bool[num_heldout], whether the threshold was reached within the cap.
     """
+
+    mean_return: jax.Array
+    success_rate: jax.Array
+    iterations: jax.Array
+    solved: jax.Array
+
+
+def heldout_adaptation(method: Method, eval_config: EvalConfig, state, heldout_tasks, rng) -> HeldoutMetrics:
+    """Meta-test: PPO from the state's policy on every held-out task for ``eval_config.heldout_run`` iterations,
+    no early stop, nothing kept (the state is not changed): the return curve and iterations-to-success."""
     config = method.config.ppo
     optimizer = ppo.make_optimizer(config)
     params = state.params
+    curve = eval_config.heldout_iterations + 1
 
     def one(task, key):
         out = ppo.rl_step(config, method.family, params, optimizer.init(params), task, key, stop_at_threshold=False,
-                          budget=eval_config.heldout_iterations + 1)
-        return out.metrics.mean_return, out.metrics.success_rate
+                          budget=eval_config.heldout_run)
+        measured = eval_config.heldout_budget > 0
+        return HeldoutMetrics(out.metrics.mean_return[:curve], out.metrics.success_rate[:curve],
+                              jnp.where(measured, out.iterations, 0).astype(jnp.int32), out.solved & measured)
 
     n = jax.tree.leaves(heldout_tasks)[0].shape[0]
     return jax.vmap(one)(heldout_tasks, jax.random.split(rng, n))

@@ -14,14 +14,15 @@ Masked slots (tasks not seen yet) contribute nothing, so one compiled step serve
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable, ClassVar, NamedTuple, Optional
+from typing import ClassVar, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
 import optax
 
 from jcomps import buffers, networks, vtrace
-from jcomps.ppo import all_finite, check_field, masked_mean
+from jcomps.progress import ProgressFn
+from jcomps.numerics import all_finite, check_field, keep_if_finite, masked_mean
 
 
 @dataclasses.dataclass(frozen=True)
@@ -114,8 +115,9 @@ def _vtrace_terms(config: MetaConfig, log_prob, values, bootstrap, off: buffers.
         out = vtrace.vtrace(values, bootstrap, traj.reward, discounts, log_rhos, rho_bar=config.rho_bar,
                             c_bar=config.c_bar, pg_rho_bar=config.pg_rho_bar)
         return out.pg_advantages, out.vs
-    # No V-trace: the baseline is the plain bootstrapped return; importance weights (if on) still weight the step.
-    returns = vtrace.vtrace(values, bootstrap, traj.reward, discounts, jnp.zeros_like(log_rhos)).vs
+    # No V-trace: the advantage is the bootstrapped discounted return minus V; importance weights (if on) still
+    # weight the step.
+    returns = vtrace.discounted_returns(traj.reward, discounts, bootstrap)
     weights = jnp.minimum(jnp.exp(log_rhos), config.pg_rho_bar) if config.importance_sampling else 1.0
     return weights * (returns - values), returns
 
@@ -261,9 +263,6 @@ def optimizers(config: MetaConfig):
     return optax.adam(config.outer_learning_rate), optax.adam(config.value_learning_rate)
 
 
-MetaStepHook = Callable[[Any, jax.Array, jax.Array, jax.Array], None]
-
-
 def slot_gradients(config: MetaConfig, policy, value, stores: buffers.SequenceStores, rng, slot):
     """(L_BC, ∇_policy, ∇_value) of task slot ``slot`` alone, its batches drawn as ``meta_gradients`` draws them
     (``fold_in(rng, slot)``): the per-task gradient of the ``sequential`` outer update."""
@@ -273,7 +272,7 @@ def slot_gradients(config: MetaConfig, policy, value, stores: buffers.SequenceSt
 
 
 def meta_train(config: MetaConfig, state: MetaState, stores: buffers.SequenceStores, rng,
-               on_step: Optional[MetaStepHook] = None, context: Any = ()):
+               progress_fn: Optional[ProgressFn] = None):
     """``num_meta_steps`` × ``num_outer_steps`` outer steps over the seen tasks; returns (state, outer losses
     f32[steps]: the mean BC loss over the seen tasks at each step, NaN where an update was skipped).
 
@@ -282,9 +281,9 @@ def meta_train(config: MetaConfig, state: MetaState, stores: buffers.SequenceSto
     task alone. Outer step (n, k) draws task j's batches from the same key in both, so the readings differ only
     in when θ moves. An update whose loss or gradient is not finite is skipped.
 
-    ``on_step(context, step, steps, loss)``, if given, is a host function called through ``jax.debug.callback``
-    (progress reports: meta-training a long sequence takes minutes on a CPU): after every outer step (mean), or
-    after every meta step with ``step`` counted in outer steps (sequential).
+    ``progress_fn`` (``jcomps.progress``), if given, gets ``{"meta_step", "meta_steps", "bc_loss"}`` (meta-training
+    a long sequence takes minutes on a CPU): after every outer step (mean), or after every meta step with
+    ``meta_step`` counted in outer steps (sequential).
     """
     policy_opt, value_opt = optimizers(config)
     steps = config.num_meta_steps * config.num_outer_steps
@@ -295,11 +294,11 @@ def meta_train(config: MetaConfig, state: MetaState, stores: buffers.SequenceSto
         up, popt = policy_opt.update(g, state.policy_opt, state.policy)
         vup, vopt = value_opt.update(vg, state.value_opt, state.value)
         new = MetaState(optax.apply_updates(state.policy, up), optax.apply_updates(state.value, vup), popt, vopt)
-        return jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, state), finite
+        return keep_if_finite(finite, new, state), finite
 
     def report(step, loss):
-        if on_step is not None:
-            jax.debug.callback(on_step, context, step, jnp.int32(steps), loss)
+        if progress_fn is not None:
+            progress_fn({"meta_step": step, "meta_steps": jnp.int32(steps), "bc_loss": loss})
 
     if config.outer_update == "mean":
         def outer(state: MetaState, xs):
@@ -325,7 +324,7 @@ def meta_train(config: MetaConfig, state: MetaState, stores: buffers.SequenceSto
             def one(state, key):
                 loss, g, vg = slot_gradients(config, state.policy, state.value, stores, key, j)
                 new, finite = apply(state, loss, g, vg)
-                new = jax.tree.map(lambda a, b: jnp.where(task_valid[j], a, b), new, state)
+                new = keep_if_finite(task_valid[j], new, state)
                 return new, jnp.where(finite, loss, jnp.nan)
 
             state, losses = jax.lax.scan(one, state, step_keys)

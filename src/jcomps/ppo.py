@@ -14,7 +14,6 @@ termination (Ant Direction falling) does not.
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import Any, Callable, ClassVar, NamedTuple, Optional
 
 import jax
@@ -22,6 +21,8 @@ import jax.numpy as jnp
 import optax
 
 from jcomps import acting, networks
+from jcomps.progress import ProgressFn
+from jcomps.numerics import all_finite, check_field, keep_if_finite, masked_mean
 from jcomps.envs.base import Family
 
 
@@ -100,10 +101,6 @@ class PPOConfig:
 SURROGATES = ("clipped", "vanilla")
 
 
-def check_field(ok: bool, field: str, value, allowed: str):
-    """Raises ValueError naming ``field``, its ``value`` and what is ``allowed`` unless ``ok`` (NaN is never ok)."""
-    if not ok or isinstance(value, float) and math.isnan(value):
-        raise ValueError(f"invalid config value {field}={value!r}; allowed: {allowed}")
 
 
 # Each family's calibrated PPO settings (docs/families.md has the calibration tables and commands): the defaults
@@ -203,9 +200,6 @@ def gae(rewards, values, bootstrap_value, dones, discount: float, lambda_: float
     return advantages, advantages + values
 
 
-def masked_mean(x, mask):
-    """Mean of ``x`` over entries where ``mask`` is 1 (0 when the mask is empty)."""
-    return jnp.sum(x * mask) / jnp.maximum(jnp.sum(mask), 1.0)
 
 
 def ppo_loss(params: networks.ActorCriticParams, batch: dict, config: PPOConfig):
@@ -232,9 +226,6 @@ def ppo_loss(params: networks.ActorCriticParams, batch: dict, config: PPOConfig)
     return loss, (policy_loss, value_loss, entropy, approx_kl)
 
 
-def all_finite(tree) -> jax.Array:
-    """bool[]: whether every leaf of ``tree`` is free of NaN and infinity."""
-    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree)]))
 
 
 def ppo_update(config: PPOConfig, optimizer, params, opt_state, traj: acting.Trajectory, rng: jax.Array):
@@ -268,8 +259,7 @@ def ppo_update(config: PPOConfig, optimizer, params, opt_state, traj: acting.Tra
         finite = all_finite((loss, grads))
         updates, new_opt_state = optimizer.update(grads, opt_state, params)
         new_params = optax.apply_updates(params, updates)
-        params, opt_state = jax.tree.map(lambda a, b: jnp.where(finite, a, b), (new_params, new_opt_state),
-                                         (params, opt_state))
+        params, opt_state = keep_if_finite(finite, (new_params, new_opt_state), (params, opt_state))
         return (params, opt_state, bad | ~finite), jnp.stack(terms)
 
     (params, opt_state, bad), terms = jax.lax.scan(step, (params, opt_state, jnp.array(False)), indices)
@@ -277,20 +267,18 @@ def ppo_update(config: PPOConfig, optimizer, params, opt_state, traj: acting.Tra
 
 
 ObserveFn = Callable[[Any, acting.Trajectory, jax.Array], Any]
-IterationHook = Callable[[Any, jax.Array, jax.Array, jax.Array], None]
 
 
 def rl_step(config: PPOConfig, family: Family, params: networks.ActorCriticParams, opt_state, task,
             rng: jax.Array, observe: Optional[ObserveFn] = None, aux: Any = None,
-            on_iteration: Optional[IterationHook] = None, context: Any = (), stop_at_threshold: bool = True,
+            progress_fn: Optional[ProgressFn] = None, stop_at_threshold: bool = True,
             budget: Optional[int] = None) -> RLStepResult:
     """PPO on ``task`` until the success rate reaches ``family.success_threshold`` or the budget is spent.
 
     ``observe(aux, trajectory, iteration) -> aux``, if given, sees every iteration's batch (the experience
-    stores of CoMPS are built this way) and threads ``aux`` through the loop. ``on_iteration(context,
-    iteration, success_rate, mean_return)``, if given, is a host function called through ``jax.debug.callback``
-    after every iteration (progress reports); ``context`` is any pytree of arrays passed along (e.g. the seed
-    and task index). ``stop_at_threshold=False`` runs the whole budget (fixed-budget adaptation); ``budget``
+    stores of CoMPS are built this way) and threads ``aux`` through the loop. ``progress_fn``
+    (``jcomps.progress``), if given, gets ``{"iteration", "success_rate", "mean_return"}`` after every iteration.
+    ``stop_at_threshold=False`` runs the whole budget (fixed-budget adaptation); ``budget``
     overrides the config's. Jittable; ``config`` and ``family`` are static.
     """
     budget = config.budget_for(family) if budget is None else budget
@@ -316,8 +304,8 @@ def rl_step(config: PPOConfig, family: Family, params: networks.ActorCriticParam
         success_rate = family.success_rate(traj.success)
         mean_return = jnp.mean(jnp.sum(traj.reward, axis=0))
         solved = success_rate >= family.success_threshold
-        if on_iteration is not None:
-            jax.debug.callback(on_iteration, context, c.it + 1, success_rate, mean_return)
+        if progress_fn is not None:
+            progress_fn({"iteration": c.it + 1, "success_rate": success_rate, "mean_return": mean_return})
         rollout_finite = all_finite((traj.obs, traj.reward))
         aux = c.aux if observe is None else observe(c.aux, traj, c.it)
 

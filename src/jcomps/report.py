@@ -1,6 +1,6 @@
 """Results of a run directory: ``results.json``, the paper's plots and a significance table.
 
-Everything here is computed from ``run.json`` and ``raw/<method>.npz`` (written by ``jcomps.experiment``), so
+Everything here is computed from ``run.json`` and ``raw/<entry>.npz`` (``jcomps.results.RawResults``), so
 ``python experiments/report.py RUN_DIR`` regenerates all of it at any time.
 
 Metrics (SPEC, "Metrics a user expects"):
@@ -10,11 +10,15 @@ Metrics (SPEC, "Metrics a user expects"):
 - the lifelong return curve (every iteration of the sequence, task after task);
 - backward transfer after task i: (c − a)/(b − a) with a, b, c averaged over the previous k tasks j: a the
   return of task j's first iteration, b of its last, c of the current policy evaluated on task j;
-- held-out meta-test: mean return on the held-out tasks after a fixed number of PPO iterations, measured at the
-  start and after every chunk of tasks;
-- significance of CoMPS against each other method on the per-seed mean iterations-to-success: a two-sided
-  independent t-test, and the same test by bootstrap (30,000 resamples of the seeds under the null of equal
-  means, Efron & Tibshirani 16.4).
+- held-out meta-test, measured at the start and after every chunk of tasks from the policy of that moment (no
+  learning kept): iterations-to-success on each held-out task within a cap (the paper's measure), and the mean
+  return on the held-out tasks after a fixed number of PPO iterations;
+- significance of a baseline method (``comps`` by default) against each other method on the per-seed mean
+  iterations-to-success: a two-sided independent t-test, and the same test by bootstrap (30,000 resamples of the
+  seeds under the null of equal means, Efron & Tibshirani 16.4);
+- the field's current convention (Agarwal et al. 2021, "rliable"): the interquartile mean (IQM) of
+  iterations-to-success over seeds × tasks, with a 95% percentile confidence interval from a stratified bootstrap
+  (seeds resampled with replacement within each task, 2,000 resamples), for each half of the sequence.
 
 With a hyperparameter grid (``jcomps.grid``) there is one entry per method and grid point, keyed
 ``METHOD[field=value,...]``, each with its ``grid`` values and an ``overall`` summary (mean iterations-to-success
@@ -33,9 +37,11 @@ from typing import Optional
 import numpy as np
 
 from jcomps import experiment, methods
+from jcomps import results as results_
 from jcomps import grid as grids
 
 BOOTSTRAP_SAMPLES = 30_000
+IQM_BOOTSTRAP_SAMPLES = 2_000
 
 
 def _mean_se(x: np.ndarray, axis=0):
@@ -55,15 +61,14 @@ def _curves(values: np.ndarray, valid: np.ndarray) -> list:
             for s in range(values.shape[0])]
 
 
-def backward_transfer(raw: dict) -> np.ndarray:
+def backward_transfer(raw: results_.RawResults) -> np.ndarray:
     """f64[seeds, tasks]: normalized reward on the previous k tasks after each task (NaN where undefined)."""
-    returns = raw["iter.mean_return"]
-    valid = raw["iter.valid"]
-    iterations = raw["task.iterations"]
-    seeds, tasks = iterations.shape
+    returns = raw.task.per_iteration.mean_return
+    valid = raw.task.per_iteration.valid
+    seeds, tasks = raw.task.iterations.shape
     first = returns[:, :, 0]
     last = np.take_along_axis(returns, np.maximum(valid.sum(-1) - 1, 0)[..., None], axis=2)[..., 0]
-    c, ok = raw["backward_returns"], raw["backward_valid"]
+    c, ok = raw.backward_returns, raw.backward_valid
     out = np.full((seeds, tasks), np.nan)
     for s in range(seeds):
         for i in range(tasks):
@@ -111,6 +116,41 @@ def significance(x, y, samples: int = BOOTSTRAP_SAMPLES, seed: int = 0) -> dict:
     return out
 
 
+def iqm(scores: np.ndarray) -> float:
+    """Interquartile mean of all entries: the mean of the middle 50% (scipy's ``trim_mean`` cutting 25% at each
+    end, rliable's ``aggregate_iqm``)."""
+    from scipy import stats
+
+    return float(stats.trim_mean(np.asarray(scores, np.float64).reshape(-1), 0.25))
+
+
+def iqm_ci(scores: np.ndarray, samples: int = IQM_BOOTSTRAP_SAMPLES, seed: int = 0, level: float = 0.95) -> dict:
+    """IQM of ``scores`` (f[seeds, tasks]) with a stratified-bootstrap percentile confidence interval: each resample
+    draws, for every task independently, as many seeds as there are with replacement (rliable's
+    ``StratifiedBootstrap``)."""
+    x = np.asarray(scores, np.float64)
+    n, tasks = x.shape
+    out = {"iqm": iqm(x), "ci": [None, None], "level": level, "bootstrap_samples": samples, "seeds": n,
+           "num_tasks": tasks}
+    if n < 2:
+        return out
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, n, (samples, n, tasks))
+    from scipy import stats
+
+    resampled = np.take_along_axis(np.broadcast_to(x, (samples, n, tasks)), idx, axis=1).reshape(samples, -1)
+    values = stats.trim_mean(resampled, 0.25, axis=1)
+    lo, hi = np.percentile(values, [50 * (1 - level), 50 * (1 + level)])
+    out["ci"] = [float(lo), float(hi)]
+    return out
+
+
+def sequence_halves(num_tasks: int) -> list[tuple[int, int]]:
+    """(first, last) 1-based task ranges of the two halves of a sequence (the second holds the odd task)."""
+    half = num_tasks // 2
+    return [(1, half), (half + 1, num_tasks)] if half >= 1 else [(1, num_tasks)]
+
+
 def _json_float(x):
     return None if x is None or not np.isfinite(x) else float(x)
 
@@ -124,8 +164,14 @@ def _jsonable_value(v):
     return list(v) if isinstance(v, tuple) else v
 
 
-def summarize(description: dict, raws: dict) -> dict:
-    """The content of ``results.json`` (``raws``: {entry key: raw metrics})."""
+def default_baseline(methods_run) -> Optional[str]:
+    """The method the significance tables compare against by default: ``comps`` when it is in the run."""
+    return "comps" if "comps" in methods_run else None
+
+
+def summarize(description: dict, raws: dict, baseline: Optional[str] = None) -> dict:
+    """The content of ``results.json`` (``raws``: {entry key: RawResults}); the significance table compares
+    ``baseline`` (a method of the run; default ``default_baseline``) with every other method."""
     run = description["run"]
     seeds = list(range(run["seed"], run["seed"] + run["seeds"]))
     results = {"description": description, "seeds": seeds, "methods": {}}
@@ -133,31 +179,38 @@ def summarize(description: dict, raws: dict) -> dict:
     overall_its, overall_ret = {}, {}
     for method, name, values in entries:
         raw = raws[name]
-        its = raw["task.iterations"]
-        valid = raw["iter.valid"]
-        ret, succ = raw["iter.mean_return"], raw["iter.success_rate"]
+        its = raw.task.iterations
+        valid = raw.task.per_iteration.valid
+        ret, succ = raw.task.per_iteration.mean_return, raw.task.per_iteration.success_rate
         per_task_return = np.where(valid, ret, 0).sum(-1) / np.maximum(valid.sum(-1), 1)
         mean, se = _mean_se(its)
         bt = backward_transfer(raw)
-        h_ret = raw["heldout_return"].mean(axis=2)  # [seeds, points, iterations + 1], averaged over tasks
+        h_ret = raw.heldout.mean_return.mean(axis=2)  # [seeds, points, iterations + 1], averaged over tasks
         entry = results["methods"][name] = {
             "iterations_to_success": its.astype(int).tolist(),
             "iterations_to_success_mean": mean.round(3).tolist(),
             "iterations_to_success_se": se.round(3).tolist(),
-            "solved": raw["task.solved"].astype(bool).tolist(),
+            "solved": raw.task.solved.astype(bool).tolist(),
             "mean_return_per_task": per_task_return.round(6).tolist(),
             "return_curves": _curves(ret, valid),
             "success_rate_curves": _curves(succ, valid),
             "backward_transfer": [[_json_float(v) for v in row] for row in bt],
             "heldout": {
-                "after_tasks": raw["heldout_after_tasks"].tolist(),
+                "after_tasks": raw.heldout_after_tasks.tolist(),
                 "zero_shot_return": h_ret[:, :, 0].round(6).tolist(),
                 "adapted_return": h_ret[:, :, -1].round(6).tolist(),
                 "adaptation_iterations": int(h_ret.shape[-1] - 1),
+                # [seeds, points, held-out tasks]; the budget is the cap (never reached within it)
+                "iterations_to_success": raw.heldout.iterations.astype(int).tolist(),
+                "iterations_to_success_mean": raw.heldout.iterations.mean(axis=2).round(3).tolist(),
+                "solved": raw.heldout.solved.astype(bool).tolist(),
+                "budget": int(description["eval"].get("heldout_budget", 0)),
             },
-            "nonfinite_iterations": int(np.sum(raw["iter.nonfinite"] > 0)),
-            "seconds": float(raw["seconds"]),
-            "devices": int(raw["devices"]),
+            "iqm": [{"tasks": list(r), **iqm_ci(its[:, r[0] - 1:r[1]])}
+                    for r in sequence_halves(its.shape[1])],
+            "nonfinite_iterations": int(np.sum(raw.task.per_iteration.nonfinite > 0)),
+            "seconds": float(raw.seconds),
+            "devices": int(raw.devices),
         }
         if values is not None:
             seed_means = its.astype(np.float64).mean(axis=1)
@@ -171,13 +224,18 @@ def summarize(description: dict, raws: dict) -> dict:
     if "grid" in description:
         best = grids.best(entries, overall_its, overall_ret)
         results["best"] = best
-    if "comps" in best:
-        base = raws[best["comps"]]["task.iterations"].mean(axis=1)
+    baseline = baseline or default_baseline(run["methods"])
+    if baseline is not None and baseline not in run["methods"]:
+        raise experiment.RunError(f"--baseline {baseline}: not a method of this run; its methods: "
+                                  f"{', '.join(run['methods'])}")
+    if baseline is not None:
+        base = raws[best[baseline]].task.iterations.mean(axis=1)
         results["significance"] = {
+            "baseline": best[baseline],
             "statistic": "per-seed mean iterations-to-success over the sequence"
                          + (", each method at its best grid point" if "grid" in description else ""),
-            "against": {best[m]: significance(base, raws[best[m]]["task.iterations"].mean(axis=1))
-                        for m in run["methods"] if m != "comps"}}
+            "against": {best[m]: significance(base, raws[best[m]].task.iterations.mean(axis=1))
+                        for m in run["methods"] if m != baseline}}
     return results
 
 
@@ -185,6 +243,7 @@ def _plots(results: dict, raws: dict, directory: str) -> list[str]:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
 
     os.makedirs(directory, exist_ok=True)
     written = []
@@ -206,6 +265,9 @@ def _plots(results: dict, raws: dict, directory: str) -> list[str]:
         ax.plot(x, mean, marker="o", ms=3, label=label)
         ax.fill_between(x, mean - se, mean + se, alpha=0.25)
 
+    def integer_ticks(ax):  # task numbers and tasks learnt are whole numbers
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+
     methods_ = results["methods"]
     tasks = np.arange(1, len(next(iter(methods_.values()))["iterations_to_success"][0]) + 1)
 
@@ -213,12 +275,13 @@ def _plots(results: dict, raws: dict, directory: str) -> list[str]:
     for name, m in methods_.items():
         band(ax, tasks, np.asarray(m["iterations_to_success"]), name)
     ax.set(xlabel="task", ylabel="iterations to success", title=f"Iterations to success ({title})")
+    integer_ticks(ax)
     ax.legend()
     save(fig, "iterations_to_success.png")
 
     fig, ax = plt.subplots(figsize=(7, 4))
     for k, (name, raw) in enumerate(raws.items()):
-        valid, ret = raw["iter.valid"], raw["iter.mean_return"]
+        valid, ret = raw.task.per_iteration.valid, raw.task.per_iteration.mean_return
         lines = [ret[s][valid[s]] for s in range(ret.shape[0])]
         n = min(len(x) for x in lines)
         for line in lines:
@@ -233,6 +296,7 @@ def _plots(results: dict, raws: dict, directory: str) -> list[str]:
     for name, m in methods_.items():
         band(ax, tasks, np.asarray(m["mean_return_per_task"]), name)
     ax.set(xlabel="task", ylabel="average return during the RL step", title="Per-task average return")
+    integer_ticks(ax)
     ax.legend()
     save(fig, "per_task_return.png")
 
@@ -245,35 +309,59 @@ def _plots(results: dict, raws: dict, directory: str) -> list[str]:
     ax.axhline(1.0, color="gray", lw=0.8, ls="--")
     ax.set(xlabel="task", ylabel="normalized reward (1: nothing forgotten)",
            title=f"Backward transfer on the previous {k} tasks")
+    integer_ticks(ax)
     ax.legend()
     save(fig, "backward_transfer.png")
 
-    fig, ax = plt.subplots(figsize=(6, 4))
+    fig, (ax_its, ax) = plt.subplots(1, 2, figsize=(11, 4))
     for k_, (name, m) in enumerate(methods_.items()):
         h = m["heldout"]
+        if h["budget"] > 0:
+            mean, se = _mean_se(np.asarray(h["iterations_to_success_mean"]))
+            ax_its.errorbar(h["after_tasks"], mean, yerr=se, marker="o", ms=3, color=f"C{k_}", label=name)
         mean, se = _mean_se(np.asarray(h["adapted_return"]))
         ax.errorbar(h["after_tasks"], mean, yerr=se, marker="o", ms=3, color=f"C{k_}",
                     label=f"{name} after {h['adaptation_iterations']} iterations")
         ax.plot(h["after_tasks"], np.mean(h["zero_shot_return"], axis=0), ls=":", color=f"C{k_}",
                 label=f"{name} zero-shot")
-    ax.set(xlabel="tasks learnt", ylabel="mean return on held-out tasks", title="Held-out meta-test")
-    ax.legend(fontsize=8)
+    budget = max(m["heldout"]["budget"] for m in methods_.values())
+    ax_its.set(xlabel="tasks learnt", ylabel=f"iterations to success (cap {budget})",
+               title="Held-out tasks: iterations to success")
+    ax.set(xlabel="tasks learnt", ylabel="mean return on held-out tasks", title="Held-out tasks: return")
+    for a in (ax_its, ax):
+        integer_ticks(a)
+        a.legend(fontsize=8)
     save(fig, "heldout_meta_test.png")
     return written
 
 
 def significance_table(results: dict) -> str:
-    """Markdown table of CoMPS against each other method."""
+    """Markdown tables: the baseline against each other method (t-test and bootstrap), and every method's IQM of
+    iterations-to-success with stratified-bootstrap confidence intervals over each half of the sequence."""
     sig = results.get("significance")
-    if not sig:
-        return "No significance table: the run has no `comps` method to compare against.\n"
     fmt = lambda v: "n/a" if v is None else f"{v:.4g}"  # noqa: E731
-    lines = [f"Statistic: {sig['statistic']}; two-sided independent t-test, bootstrap of "
-             f"{BOOTSTRAP_SAMPLES:,} resamples.", "",
-             "| CoMPS vs | CoMPS mean | other mean | t | p (t-test) | p (bootstrap) |", "|---|---|---|---|---|---|"]
-    for name, s in sig["against"].items():
-        lines.append(f"| {name} | {s['mean_a']:.2f} | {s['mean_b']:.2f} | {fmt(s['t'])} | {fmt(s['p_ttest'])} | "
-                     f"{fmt(s['p_bootstrap'])} |")
+    if not sig:
+        lines = ["No significance table: the run has no `comps`; name the method to compare against with "
+                 "`--baseline METHOD` (`experiments/report.py DIR --baseline METHOD` redoes it).", ""]
+    else:
+        b = sig["baseline"]
+        lines = [f"Statistic: {sig['statistic']}; two-sided independent t-test, bootstrap of "
+                 f"{BOOTSTRAP_SAMPLES:,} resamples.", "",
+                 f"| {b} vs | {b} mean | other mean | t | p (t-test) | p (bootstrap) |", "|---|---|---|---|---|---|"]
+        for name, s in sig["against"].items():
+            lines.append(f"| {name} | {s['mean_a']:.2f} | {s['mean_b']:.2f} | {fmt(s['t'])} | {fmt(s['p_ttest'])} | "
+                         f"{fmt(s['p_bootstrap'])} |")
+        lines.append("")
+    shown = results.get("best", {m: m for m in results["methods"]}).values()
+    entries = {name: results["methods"][name] for name in shown}
+    halves = [h["tasks"] for h in next(iter(entries.values()))["iqm"]]
+    lines += ["Interquartile mean (IQM) of iterations-to-success over seeds × tasks, with 95% confidence intervals "
+              f"from a stratified bootstrap over seeds ({IQM_BOOTSTRAP_SAMPLES:,} resamples; Agarwal et al. 2021).",
+              "", "| method | " + " | ".join(f"tasks {a}-{b}" for a, b in halves) + " |",
+              "|---" * (len(halves) + 1) + "|"]
+    for name, m in entries.items():
+        cells = [f"{h['iqm']:.1f} [{fmt(h['ci'][0])}, {fmt(h['ci'][1])}]" for h in m["iqm"]]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -301,8 +389,9 @@ def grid_table(results: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write(out: str) -> Optional[dict]:
-    """(Re)writes ``results.json``, the plots and ``significance.md`` of run directory ``out``."""
+def write(out: str, baseline: Optional[str] = None) -> Optional[dict]:
+    """(Re)writes ``results.json``, the plots and ``significance.md`` of run directory ``out``; the significance
+    table compares ``baseline`` (default: ``comps`` when the run has it) with every other method."""
     run_json = os.path.join(out, "run.json")
     if not os.path.isfile(run_json):
         raise experiment.RunError(f"{out} is not a run directory (no run.json)")
@@ -310,11 +399,11 @@ def write(out: str) -> Optional[dict]:
         description = json.load(f)
     raws = {}
     for method, name, _ in _entries(description):
-        raw = experiment.load_raw(out, name)
+        raw = results_.load(out, name)
         if raw is None:
             raise experiment.RunError(f"{out}: {name} has not finished; continue the run with --resume")
         raws[name] = raw
-    results = summarize(description, raws)
+    results = summarize(description, raws, baseline)
     results["plots"] = [os.path.relpath(p, out) for p in _plots(results, raws, os.path.join(out, "plots"))]
     experiment._write_json(os.path.join(out, "results.json"), results)
     table = grid_table(results)

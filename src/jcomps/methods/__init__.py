@@ -3,26 +3,26 @@
 A registered method is a constructor and its default config *instance*: the rungs of the paper's ablation ladder
 (appendix "CoMPS Ablation") share CoMPS's config class and constructor and differ only in their defaults.
 
-| name | what it is |
-|---|---|
-| ``ppo`` | single-task PPO from a random initialisation on every task (no transfer) |
-| ``ppo_tl`` | PPO+TL: PPO on each task, parameters carried to the next (the paper's baseline) |
-| ``gmps`` | the meta step without importance weights, V-trace or warm start; the RL step is vanilla on-policy policy gradient (one full-batch gradient step per iteration, no ratio clipping) |
-| ``gmps_ppo`` | as ``gmps`` with our PPO as the RL step |
-| ``gmps_ppo_is`` | + importance-sampled inner gradient with the V-trace baseline (no warm start) |
-| ``gmps_ppo_is_x2`` | + twice the skilled data (|D*_i| = 40; no warm start) |
-| ``comps`` | GMPS + PPO + IS + FTML warm start: CoMPS |
+- ``ppo``: single-task PPO from a random initialisation on every task (no transfer);
+- ``ppo_tl``: PPO+TL, PPO on each task with the parameters carried to the next (the paper's baseline);
+- ``gmps``: the meta step without importance weights, V-trace or warm start, and GMPS's RL step: vanilla
+  on-policy policy gradient (one full-batch gradient step per iteration, no ratio clipping);
+- ``gmps_ppo``: as ``gmps`` with our PPO as the RL step;
+- ``gmps_ppo_is``: + the importance-sampled inner gradient with the V-trace baseline (no warm start);
+- ``gmps_ppo_is_x2``: + twice the skilled data (|D*_i| = 40; no warm start);
+- ``comps``: GMPS + PPO + IS + the FTML warm start, CoMPS.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable, NamedTuple
+from typing import Any, Callable, NamedTuple, Optional
 
 from jcomps import meta, ppo
 from jcomps.envs.base import Family
 from jcomps.methods import comps, ppo_tl
 from jcomps.methods.base import Method, TaskMetrics
+from jcomps.progress import ProgressFn
 
 
 class Registered(NamedTuple):
@@ -30,7 +30,7 @@ class Registered(NamedTuple):
 
     Attributes:
       default: its default config (an instance of its config dataclass).
-      make: ``(family, config, on_iteration, on_meta_step) -> Method``.
+      make: ``(family, config, progress_fn) -> Method``.
       rl_step: PPO fields that define the method's RL step; they stay in force over the family's calibrated PPO
         settings (``gmps``'s vanilla policy gradient keeps one gradient step per iteration on every family).
     """
@@ -77,21 +77,19 @@ def default_config(name: str, family: Family | str):
     return dataclasses.replace(entry.default, ppo=rl)
 
 
-def make(name: str, family: Family, config=None, on_iteration=None, on_meta_step=None) -> Method:
+def make(name: str, family: Family, config=None, progress_fn: Optional[ProgressFn] = None) -> Method:
     """Method ``name`` (one of ``METHODS``) on ``family`` with ``config`` (default: ``default_config(name,
     family)``, the paper's defaults with the family's calibrated PPO settings).
 
-    ``on_iteration(context, iteration, success_rate, mean_return)``: optional host function called after every
-    RL iteration (see ``ppo.rl_step``), with the ``context`` passed to ``learn_task``.
-    ``on_meta_step(context, step, steps, loss)``: likewise after every outer update of a meta-training phase
-    (``meta.meta_train``; methods without one ignore it).
+    ``progress_fn`` (``jcomps.progress``; e.g. ``progress.host(print)``), if given, gets the metrics of every RL
+    iteration and of every outer update of a meta-training phase, with the ``task`` index.
     """
     cls = config_class(name)
     if config is None:
         config = default_config(name, family)
     if not isinstance(config, cls):
         raise TypeError(f"method {name!r} takes a {cls.__name__}, got {type(config).__name__}")
-    return REGISTRY[name].make(family, config, on_iteration, on_meta_step)
+    return REGISTRY[name].make(family, config, progress_fn)
 
 
 __all__ = ["METHODS", "Method", "REGISTRY", "Registered", "TaskMetrics", "config_class", "default_config", "make"]

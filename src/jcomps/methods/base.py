@@ -3,8 +3,8 @@
 A method is data plus pure functions (as in optax):
 
 - ``method.init(rng) -> State``: the method's whole state (parameters, optimiser states, rng, counters).
-- ``method.learn_task(state, task, context=()) -> (State, TaskMetrics)``: learn one task of the sequence;
-  ``context`` (a pytree of arrays, e.g. seed and task index) is handed to the method's ``on_iteration`` hook.
+- ``method.learn_task(state, task) -> (State, TaskMetrics)``: learn one task of the sequence. Progress goes to the
+  ``progress_fn`` the method was made with (``jcomps.progress``), tagged with ``state.task_index``.
 
 Every state has a field ``params`` (``networks.ActorCriticParams``): the parameters the method would start its
 next task from. Evaluations (backward transfer, held-out adaptation) read the policy there.
@@ -44,7 +44,7 @@ class Method(NamedTuple):
       config: the method's frozen config dataclass.
       family: the task family it learns on.
       init: ``rng -> State``.
-      learn_task: ``(State, task, context=()) -> (State, TaskMetrics)``.
+      learn_task: ``(State, task) -> (State, TaskMetrics)``.
     """
 
     name: str

@@ -9,12 +9,15 @@ finished task i; θ_{i+1} is its result.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jcomps import buffers, meta, networks, ppo
+from jcomps.numerics import check_field
+from jcomps.progress import ProgressFn, with_fields
 from jcomps.envs.base import Family
 from jcomps.methods.base import Method, TaskMetrics
 
@@ -41,10 +44,10 @@ class CoMPSConfig:
     """Start each task's RL step with a fresh PPO Adam state."""
 
     def __post_init__(self):
-        ppo.check_field(self.max_tasks >= 1, "max_tasks", self.max_tasks, "an integer >= 1")
-        ppo.check_field(self.num_skilled >= 1, "num_skilled", self.num_skilled, "an integer >= 1")
-        ppo.check_field(self.num_offpolicy >= 1, "num_offpolicy", self.num_offpolicy, "an integer >= 1")
-        ppo.check_field(0 < self.recent_fraction <= 1, "recent_fraction", self.recent_fraction, "a number in (0, 1]")
+        check_field(self.max_tasks >= 1, "max_tasks", self.max_tasks, "an integer >= 1")
+        check_field(self.num_skilled >= 1, "num_skilled", self.num_skilled, "an integer >= 1")
+        check_field(self.num_offpolicy >= 1, "num_offpolicy", self.num_offpolicy, "an integer >= 1")
+        check_field(0 < self.recent_fraction <= 1, "recent_fraction", self.recent_fraction, "a number in (0, 1]")
 
 
 class CoMPSState(NamedTuple):
@@ -62,7 +65,7 @@ class CoMPSState(NamedTuple):
     task_index: jax.Array
 
 
-def make(family: Family, config: CoMPSConfig = CoMPSConfig(), on_iteration=None, on_meta_step=None,
+def make(family: Family, config: CoMPSConfig = CoMPSConfig(), progress_fn: Optional[ProgressFn] = None,
          name: str = "comps") -> Method:
     optimizer = ppo.make_optimizer(config.ppo)
     policy_opt, value_opt = meta.optimizers(config.meta)
@@ -84,13 +87,17 @@ def make(family: Family, config: CoMPSConfig = CoMPSConfig(), on_iteration=None,
         skilled, recent = aux
         return buffers.skilled_update(skilled, traj), buffers.recent_add(recent, traj)
 
-    def learn_task(state: CoMPSState, task, context=()) -> tuple[CoMPSState, TaskMetrics]:
+    def learn_task(state: CoMPSState, task) -> tuple[CoMPSState, TaskMetrics]:
+        if not isinstance(state.task_index, jax.core.Tracer) and int(np.max(state.task_index)) >= config.max_tasks:
+            raise ValueError(f"{name}: task {int(np.max(state.task_index)) + 1} is past max_tasks="
+                             f"{config.max_tasks} (one experience slot per task); make the method with more")
         rng, k_rl, k_off, k_meta = jax.random.split(state.rng, 4)
         opt_state = optimizer.init(state.params) if config.reset_optimizer else state.opt_state
         aux0 = (buffers.skilled_init(T, config.num_skilled, family.obs_size, family.action_size),
                 buffers.recent_init(capacity, T, B, family.obs_size, family.action_size))
+        report = with_fields(progress_fn, task=state.task_index)
         out = ppo.rl_step(config.ppo, family, state.params, opt_state, task, k_rl, observe=observe, aux=aux0,
-                          on_iteration=on_iteration, context=context)
+                          progress_fn=report)
         skilled, recent = out.aux
         offpolicy = buffers.sample_offpolicy(recent, config.num_offpolicy, k_off)
         stores = buffers.sequence_write(state.stores, state.task_index, skilled, offpolicy)
@@ -99,8 +106,7 @@ def make(family: Family, config: CoMPSConfig = CoMPSConfig(), on_iteration=None,
         start = out.params.policy if config.warm_start else {**state.meta.policy,
                                                              "obs_norm": out.params.policy["obs_norm"]}
         meta_state = state.meta._replace(policy=start)
-        meta_state, _ = meta.meta_train(config.meta, meta_state, stores, k_meta, on_step=on_meta_step,
-                                        context=context)
+        meta_state, _ = meta.meta_train(config.meta, meta_state, stores, k_meta, progress_fn=report)
         params = out.params._replace(policy=meta_state.policy)
         new = CoMPSState(params, out.opt_state, meta_state, stores, rng, state.task_index + 1)
         return new, TaskMetrics(out.iterations, out.solved, out.metrics)
@@ -110,7 +116,7 @@ def make(family: Family, config: CoMPSConfig = CoMPSConfig(), on_iteration=None,
 
 def named(name: str):
     """CoMPS's constructor under another registry name (the rungs of the ablation ladder differ in config only)."""
-    def make_named(family: Family, config: CoMPSConfig = CoMPSConfig(), on_iteration=None, on_meta_step=None):
-        return make(family, config, on_iteration, on_meta_step, name=name)
+    def make_named(family: Family, config: CoMPSConfig = CoMPSConfig(), progress_fn: Optional[ProgressFn] = None):
+        return make(family, config, progress_fn, name=name)
 
     return make_named

@@ -4,12 +4,13 @@ from scratch: a fresh random policy for every task (the single-task reference th
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, Optional
 
 import jax
 
 from jcomps import networks, ppo
 from jcomps.envs.base import Family
+from jcomps.progress import ProgressFn, with_fields
 from jcomps.methods.base import Method, TaskMetrics
 
 
@@ -32,11 +33,10 @@ class PPOTLState(NamedTuple):
     task_index: jax.Array
 
 
-def make(family: Family, config: PPOTLConfig = PPOTLConfig(), on_iteration=None, on_meta_step=None,
+def make(family: Family, config: PPOTLConfig = PPOTLConfig(), progress_fn: Optional[ProgressFn] = None,
          scratch: bool = False) -> Method:
     """PPO+TL; with ``scratch``, the method ``ppo``: every task starts from freshly initialised parameters (and
     a fresh Adam state), drawn from the method's own random stream."""
-    del on_meta_step  # PPO+TL has no meta-training phase
     optimizer = ppo.make_optimizer(config.ppo)
 
     def init(rng: jax.Array) -> PPOTLState:
@@ -44,7 +44,7 @@ def make(family: Family, config: PPOTLConfig = PPOTLConfig(), on_iteration=None,
         params = ppo.init_params(config.ppo, family, k)
         return PPOTLState(params, optimizer.init(params), rng, jax.numpy.int32(0))
 
-    def learn_task(state: PPOTLState, task, context=()) -> tuple[PPOTLState, TaskMetrics]:
+    def learn_task(state: PPOTLState, task) -> tuple[PPOTLState, TaskMetrics]:
         rng, k = jax.random.split(state.rng)
         if scratch:
             k, k_init = jax.random.split(k)
@@ -52,15 +52,15 @@ def make(family: Family, config: PPOTLConfig = PPOTLConfig(), on_iteration=None,
         else:
             params = state.params
         opt_state = optimizer.init(params) if config.reset_optimizer or scratch else state.opt_state
-        out = ppo.rl_step(config.ppo, family, params, opt_state, task, k, on_iteration=on_iteration,
-                          context=context)
+        out = ppo.rl_step(config.ppo, family, params, opt_state, task, k,
+                          progress_fn=with_fields(progress_fn, task=state.task_index))
         new_state = PPOTLState(out.params, out.opt_state, rng, state.task_index + 1)
         return new_state, TaskMetrics(out.iterations, out.solved, out.metrics)
 
     return Method("ppo" if scratch else "ppo_tl", config, family, init, learn_task)
 
 
-def make_scratch(family: Family, config: PPOTLConfig = PPOTLConfig(), on_iteration=None,
-                 on_meta_step=None) -> Method:
+def make_scratch(family: Family, config: PPOTLConfig = PPOTLConfig(),
+                 progress_fn: Optional[ProgressFn] = None) -> Method:
     """The method ``ppo``: single-task PPO from a random initialisation on every task (no transfer)."""
-    return make(family, config, on_iteration, on_meta_step, scratch=True)
+    return make(family, config, progress_fn, scratch=True)

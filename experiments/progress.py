@@ -1,0 +1,175 @@
+"""What the runner shows and logs: progress lines, per-task results and TensorBoard, from the events of
+``jcomps.experiment`` (its one ``progress_fn`` callback). Host work lives here, at the edge: nothing under
+``src/jcomps`` prints.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from typing import Callable, Optional
+
+import numpy as np
+
+from jcomps.checkpoint import RunError
+
+
+class Progress:
+    """Host-side progress of one program: a status line at most every ``interval`` seconds, from the callbacks
+    of every RL iteration (program, task, iteration, success rate, elapsed, remaining) and of every outer update
+    of a meta-training phase (program, task, meta step, outer BC loss, elapsed, remaining).
+
+    ``members`` (a program of several grid points): each member's name (its grid point and seed); the line then
+    also names the member furthest behind, so one line per program says which grid point it waits for.
+    """
+
+    def __init__(self, name: str, seeds: int, num_tasks: int, start_task: int, log: Callable[[str], None],
+                 interval: float = 10.0, members: Optional[list] = None):
+        self.name, self.seeds, self.num_tasks, self.log, self.interval = name, seeds, num_tasks, log, interval
+        self.members = members
+        self.start = time.time()
+        self.start_task = start_task
+        self.last = 0.0
+        self.task = np.full(seeds, start_task, np.int64)
+        self.iteration = np.zeros(seeds, np.int64)
+        self.success = np.zeros(seeds)
+        self.meta_loss = np.full(seeds, np.nan)
+
+    def record_iteration(self, member: int, task: int, iteration: int, success_rate: float):
+        """After every RL iteration of a member."""
+        self.task[member], self.iteration[member], self.success[member] = task, iteration, success_rate
+        self._throttled(self.line)
+
+    def record_meta_step(self, member: int, task: int, step: int, steps: int, loss: float):
+        """After every outer update of a meta-training phase (between two tasks)."""
+        self.meta_loss[member] = float(loss)
+        self._throttled(lambda: f"[{self.name}] task {task + 1}/{self.num_tasks} meta-training step {int(step)}/"
+                                f"{int(steps)} bc loss {float(np.nanmean(self.meta_loss)):.3f}{self._behind()} | "
+                                f"elapsed {_clock(time.time() - self.start)} remaining {self._remaining_text()}")
+
+    def _throttled(self, line: Callable[[], str]):
+        now = time.time()
+        if now - self.last >= self.interval:
+            self.last = now
+            self.log(line())
+
+    def _remaining_text(self) -> str:
+        remaining = self.remaining()
+        return "?" if remaining is None else "~" + _clock(remaining)
+
+    def _behind(self) -> str:
+        if not self.members:
+            return ""
+        # The lowest task, then the highest iteration: a member that reached the threshold keeps reporting the
+        # iteration it stopped at while the vmapped loop waits for the others, so the one still iterating on the
+        # lowest task has counted furthest.
+        m = int(np.lexsort((-self.iteration, self.task))[0])
+        return f" | behind: {self.members[m]} (task {int(self.task[m]) + 1})"
+
+    def remaining(self) -> Optional[float]:
+        done = float(np.mean(self.task)) - self.start_task
+        if done <= 0:
+            return None
+        return (time.time() - self.start) * (self.num_tasks - float(np.mean(self.task))) / done
+
+    def line(self) -> str:
+        lo, hi = int(self.task.min()) + 1, int(self.task.max()) + 1
+        tasks = f"{lo}" if lo == hi else f"{lo}-{hi}"
+        return (f"[{self.name}] task {tasks}/{self.num_tasks} iteration {int(self.iteration.max())} success "
+                f"{float(self.success.mean()):.2f}{self._behind()} | elapsed {_clock(time.time() - self.start)} "
+                f"remaining {self._remaining_text()}")
+
+
+def _clock(seconds: float) -> str:
+    seconds = int(seconds)
+    return f"{seconds // 3600}h{seconds // 60 % 60:02d}m" if seconds >= 3600 else f"{seconds // 60}m{seconds % 60:02d}s"
+
+
+class Console:
+    """A ``jcomps.experiment.ProgressReceiver``: prints progress lines (at most every ``interval`` seconds per
+    program), every task's iterations-to-success, non-finite warnings and checkpoint warnings through ``log``; with
+    ``tensorboard``, also writes TensorBoard logs under ``out/tensorboard/<entry>``."""
+
+    def __init__(self, log: Callable[[str], None] = print, out: Optional[str] = None, tensorboard: bool = False,
+                 interval: float = 10.0):
+        self.log, self.out, self.tensorboard, self.interval = log, out, tensorboard, interval
+        self.progress: dict = {}
+        self.writers: dict = {}
+        if tensorboard:
+            _tensorboard_writer_class()  # fail before anything runs if tensorboardX is missing
+
+    def __call__(self, event: dict):
+        kind = event["event"]
+        name = event.get("program")
+        if kind == "start":
+            extra = f" (+{event['padding']} to fill the devices, not reported)" if event["padding"] else ""
+            points = event["grid_points"]
+            grid_text = f" × {points} grid points = {points * event['seeds']} members" if points > 1 else ""
+            self.log(f"[{name}] {event['family']} {event['sequence']}, {event['num_tasks']} tasks, {event['seeds']} "
+                     f"seeds{grid_text}{extra} on {event['devices']} device(s), budget {event['budget']}, chunks of "
+                     f"{event['chunk']}; compiling...")
+            self.progress[name] = Progress(name, len(event["members"]), event["num_tasks"], event["start_task"],
+                                           self.log, self.interval, event["members"] if points > 1 else None)
+        elif kind == "resumed":
+            self.log(f"[{name}] resumed from checkpoint {event['step']}: {event['tasks_done']}/{event['num_tasks']} "
+                     "tasks done")
+        elif kind == "warning":
+            self.log(f"warning: {event['message']}")
+        elif kind == "iteration" and name in self.progress:
+            self.progress[name].record_iteration(event["member"], event["task"], event["iteration"], event["success_rate"])
+        elif kind == "meta_step" and name in self.progress:
+            self.progress[name].record_meta_step(event["member"], event["task"], event["meta_step"], event["meta_steps"],
+                                          event["bc_loss"])
+        elif kind == "chunk":
+            entry, start, stop = event["entry"], event["start"], event["stop"]
+            _report_chunk(self.log, entry, event["metrics"], start, stop, event["num_tasks"])
+            _check_finite(self.log, entry, event["seeds"], event["metrics"].task.per_iteration.nonfinite, start)
+            if self.tensorboard:
+                if entry not in self.writers:
+                    self.writers[entry] = _tensorboard_writer_class()(os.path.join(self.out, "tensorboard", entry))
+                _log_tensorboard(self.writers[entry], event["per_task"], start, stop)
+        elif kind == "done":
+            self.progress.pop(name, None)
+            self.log(f"[{name}] done in {_clock(event['seconds'])}")
+        elif kind == "skipped":
+            self.log(f"[{name}] already finished; skipping")
+
+
+def _tensorboard_writer_class():
+    try:
+        from tensorboardX import SummaryWriter
+    except ImportError as err:
+        raise RunError("--tensorboard needs tensorboardX: pip install -e '.[tensorboard]'") from err
+    return SummaryWriter
+
+
+def _report_chunk(log, name, metrics, start, stop, num_tasks):
+    its = np.asarray(metrics.task.iterations)[:, :stop - start]
+    for t in range(stop - start):
+        log(f"[{name}] task {start + t + 1}/{num_tasks} iterations-to-success per seed: {its[:, t].tolist()} "
+            f"(mean {its[:, t].mean():.1f})")
+
+
+def _check_finite(log, name, seeds, nonfinite, start):
+    bad = np.argwhere(np.asarray(nonfinite) > 0)
+    if len(bad):
+        s, t, it = bad[0]
+        log(f"error: [{name}] non-finite values (NaN/inf) at seed {seeds[s]}, task {start + t + 1}, iteration "
+            f"{it + 1}; those updates were skipped, not trained on")
+
+
+def _log_tensorboard(writer, per_task, start, stop):
+    task = per_task.task
+    its = np.asarray(task.iterations)
+    for t in range(start, stop):
+        writer.add_scalar("iterations_to_success/mean", float(its[:, t].mean()), t + 1)
+        for s in range(its.shape[0]):
+            writer.add_scalar(f"iterations_to_success/seed{s}", float(its[s, t]), t + 1)
+            valid = np.asarray(task.per_iteration.valid[s, t])
+            offset = int(np.sum(np.asarray(task.per_iteration.valid[s, :t])))
+            for i in np.flatnonzero(valid):
+                writer.add_scalar(f"lifelong_return/seed{s}", float(task.per_iteration.mean_return[s, t, i]),
+                                  offset + i + 1)
+                writer.add_scalar(f"lifelong_success/seed{s}", float(task.per_iteration.success_rate[s, t, i]),
+                                  offset + i + 1)
+    writer.flush()

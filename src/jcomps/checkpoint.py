@@ -1,0 +1,101 @@
+"""Checkpoints of a run: Orbax, atomic, every piece of a program's state, readable back or set aside.
+
+A checkpoint (``record``) holds the flat leaves of the members' states (parameters, optimiser states, experience
+stores, rng, counters), the metrics so far and the run's counters, so a resumed run continues exactly where it
+stopped (brax saves parameters only). An unreadable checkpoint is moved aside, never deleted, and the one before
+it is tried.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import time
+from typing import Optional
+
+import jax
+import numpy as np
+
+
+class RunError(ValueError):
+    """A run directory or its options cannot be used as asked (the runner turns it into exit code 2)."""
+
+
+def flatten(tree) -> dict:
+    """The leaves of ``tree`` by index; empty arrays (e.g. backward transfer with ``--backward-tasks 0``) hold
+    nothing and are left out, since Orbax refuses to save zero-size arrays."""
+    return {f"{i:05d}": np.asarray(x) for i, x in enumerate(jax.tree.leaves(tree)) if np.size(x) > 0}
+
+
+def unflatten(like, flat: dict):
+    """The inverse of ``flatten`` (``flat`` checked against ``like`` by ``Checkpoints.restore_latest``)."""
+    leaves, treedef = jax.tree.flatten(like)
+    return jax.tree.unflatten(treedef, [flat[f"{i:05d}"] if np.size(x) > 0 else np.zeros(np.shape(x), x.dtype)
+                                        for i, x in enumerate(leaves)])
+
+
+def record(states, per_task, heldout, next_chunk: int, seconds: float) -> dict:
+    """What a checkpoint holds: flat arrays of the states and the metrics so far, and the counters."""
+    return {"states": flatten(states), "per_task": flatten(per_task), "heldout": flatten(heldout),
+            "counters": {"next_chunk": np.int64(next_chunk), "seconds": np.float64(seconds)}}
+
+
+class Checkpoints:
+    """Orbax checkpoints of one method (atomic: Orbax writes to a temporary directory and renames)."""
+
+    def __init__(self, directory: str):
+        import orbax.checkpoint as ocp
+        self.ocp = ocp
+        self.directory = os.path.abspath(directory)
+        self._open()
+
+    def _open(self):
+        self.manager = self.ocp.CheckpointManager(
+            self.directory,
+            options=self.ocp.CheckpointManagerOptions(max_to_keep=2, create=True, enable_async_checkpointing=False))
+
+    def _set_aside(self, step: int) -> str:
+        """Moves an unreadable step out of the way (kept for inspection, never deleted)."""
+        dest = os.path.join(self.directory + "-unreadable", f"{step}-{time.strftime('%Y%m%d-%H%M%S')}")
+        os.makedirs(os.path.dirname(dest), exist_ok=True)
+        shutil.move(os.path.join(self.directory, str(step)), dest)
+        return dest
+
+    def save(self, step: int, tree: dict):
+        self.manager.save(step, args=self.ocp.args.StandardSave(tree), force=True)
+        self.manager.wait_until_finished()
+
+    def restore_latest(self, like: dict, warn) -> Optional[tuple[int, dict]]:
+        """The newest readable checkpoint (an unreadable one is set aside and reported through ``warn(message)``,
+        and the one before it is tried)."""
+        errors = []
+        for step in sorted(self.manager.all_steps(), reverse=True):
+            try:
+                target = jax.tree.map(np.asarray, like)
+                tree = self.manager.restore(step, args=self.ocp.args.StandardRestore(target))
+                tree = jax.tree.map(np.asarray, tree)
+                _check_like(target, tree)
+                if errors:
+                    self._open()
+                return step, tree
+            except Exception as err:  # noqa: BLE001 - any failure to read means this checkpoint is unusable
+                errors.append(f"step {step}: {type(err).__name__}: {str(err)[:300]}")
+                dest = self._set_aside(step)
+                warn(f"checkpoint step {step} in {self.directory} cannot be read ({errors[-1]}); moved to {dest}")
+        if errors:
+            raise RunError("no readable checkpoint (unreadable ones were moved to "
+                           f"{self.directory}-unreadable): " + " | ".join(errors))
+        return None
+
+
+def _check_like(like: dict, got: dict):
+    """Raises RunError unless ``got`` has the structure, shapes and dtypes of ``like``."""
+    if jax.tree.structure(like) != jax.tree.structure(got):
+        raise RunError("checkpoint entries differ from this method's state")
+    for path, a in jax.tree_util.tree_leaves_with_path(like):
+        b = got
+        for key in path:
+            b = b[key.key]
+        if a.shape != b.shape or a.dtype != b.dtype:
+            raise RunError(f"checkpoint entry {jax.tree_util.keystr(path)} is {b.dtype}{list(b.shape)}, expected "
+                           f"{a.dtype}{list(a.shape)}")

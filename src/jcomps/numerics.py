@@ -1,0 +1,31 @@
+"""Small numerics shared by every part of jcomps (as ``optax._src.numerics`` is for optax): masked means,
+finiteness checks, the skip-if-non-finite update, and the config-field check behind every config error."""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+
+
+def check_field(ok: bool, field: str, value, allowed: str):
+    """Raises ValueError naming ``field``, its ``value`` and what is ``allowed`` unless ``ok`` (NaN is never ok)."""
+    if not ok or isinstance(value, float) and math.isnan(value):
+        raise ValueError(f"invalid config value {field}={value!r}; allowed: {allowed}")
+
+
+def masked_mean(x, mask):
+    """Mean of ``x`` over entries where ``mask`` is 1 (0 when the mask is empty)."""
+    return jnp.sum(x * mask) / jnp.maximum(jnp.sum(mask), 1.0)
+
+
+def all_finite(tree) -> jax.Array:
+    """bool[]: whether every leaf of ``tree`` is free of NaN and infinity."""
+    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree)]))
+
+
+def keep_if_finite(finite: jax.Array, new, old):
+    """``new`` where the bool[] ``finite`` holds, else ``old`` (same pytree structure): an update computed from a
+    NaN or infinite loss or gradient is skipped, never applied (as optax's ``apply_if_finite``)."""
+    return jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, old)

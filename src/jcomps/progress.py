@@ -1,0 +1,36 @@
+"""Progress hooks: one signature for every part of jcomps.
+
+A ``ProgressFn`` is called *inside* compiled code with a dict of scalar arrays, the way brax hands its
+``progress_fn`` a metrics dict; what it does with them is its business (``host`` makes one that hands them to a
+host function through ``jax.debug.callback``). The dicts carry:
+
+- after every RL iteration (``ppo.rl_step``): ``iteration``, ``success_rate``, ``mean_return``;
+- after every outer update of a meta-training phase (``meta.meta_train``): ``meta_step``, ``meta_steps``,
+  ``bc_loss``;
+- methods add ``task`` (the index of the task being learnt) to both;
+- after every task of the continual loop (``continual.run_tasks``): ``task``, ``task_iterations``, ``solved``.
+
+Because the hook runs at trace level, a caller can close it over traced values of its own (the runner closes it
+over each member's index under ``vmap``) without the methods knowing about members.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Optional
+
+import jax
+
+ProgressFn = Callable[[dict], None]
+
+
+def host(fn: Callable[[dict], None]) -> ProgressFn:
+    """A ProgressFn that calls the host function ``fn(metrics)`` with numpy values (``jax.debug.callback``;
+    under ``vmap`` once per batch element, in no fixed order)."""
+    return lambda metrics: jax.debug.callback(fn, metrics)
+
+
+def with_fields(progress_fn: Optional[ProgressFn], **fields) -> Optional[ProgressFn]:
+    """``progress_fn`` with ``fields`` (arrays) added to every metrics dict; None stays None."""
+    if progress_fn is None:
+        return None
+    return lambda metrics: progress_fn({**fields, **metrics})

@@ -1,0 +1,106 @@
+"""The raw results of a finished results entry (a method, or a method at a grid point): one typed structure,
+written by the runner (``jcomps.experiment``) and read back by the report (``jcomps.report``), here only.
+
+On disk, ``raw/<entry>.npz`` holds one array per leaf, named by its path in ``RawResults``
+(``task.per_iteration.mean_return``, ``heldout.iterations``, ...). Files written before this structure existed
+(keys ``iter.*``, ``heldout_return``, ...) are read too.
+"""
+
+from __future__ import annotations
+
+import os
+import typing
+from typing import NamedTuple, Optional
+
+import numpy as np
+
+from jcomps.checkpoint import RunError
+from jcomps.continual import HeldoutMetrics
+from jcomps.methods.base import TaskMetrics
+
+
+class RawResults(NamedTuple):
+    """Every metric of one results entry (numpy; S seeds, N tasks, P held-out measurements, H held-out tasks).
+
+    Attributes:
+      task: TaskMetrics: iterations and solved [S, N]; per_iteration fields [S, N, budget] (masked by valid).
+      backward_returns: f32[S, N, k], the policy after task i on tasks i − 1 − d (``continual.ChunkMetrics``).
+      backward_valid: bool[S, N, k].
+      heldout: HeldoutMetrics with a leading [S, P] (curves [S, P, H, iterations + 1]; iterations [S, P, H]).
+      heldout_after_tasks: i64[P], tasks learnt before each held-out measurement.
+      seconds: wall time of the entry's program; devices: devices it ran on.
+    """
+
+    task: TaskMetrics
+    backward_returns: np.ndarray
+    backward_valid: np.ndarray
+    heldout: HeldoutMetrics
+    heldout_after_tasks: np.ndarray
+    seconds: float
+    devices: int
+
+
+def _leaves(prefix: str, x):
+    if hasattr(x, "_asdict"):
+        for key, value in x._asdict().items():
+            yield from _leaves(f"{prefix}{key}.", value)
+    else:
+        yield prefix[:-1], np.asarray(x)
+
+
+def _build(cls, prefix: str, arrays: dict):
+    hints = typing.get_type_hints(cls)
+    kwargs = {}
+    for name in cls._fields:
+        tp = hints.get(name)
+        if isinstance(tp, type) and hasattr(tp, "_fields"):
+            kwargs[name] = _build(tp, f"{prefix}{name}.", arrays)
+        else:
+            kwargs[name] = arrays[f"{prefix}{name}"]
+    return cls(**kwargs)
+
+
+# Keys of the format before RawResults -> their path now.
+_LEGACY = {"heldout_return": "heldout.mean_return", "heldout_success": "heldout.success_rate"}
+
+
+def _upgrade(arrays: dict) -> dict:
+    if "task.per_iteration.valid" in arrays:
+        return arrays
+    out = {}
+    for key, value in arrays.items():
+        if key.startswith("iter."):
+            key = "task.per_iteration." + key[len("iter."):]
+        out[_LEGACY.get(key, key)] = value
+    shape = out["heldout.mean_return"].shape[:3]  # [S, P, H]: iterations-to-success was not measured then
+    out.setdefault("heldout.iterations", np.zeros(shape, np.int32))
+    out.setdefault("heldout.solved", np.zeros(shape, bool))
+    return out
+
+
+def path(out: str, name: str) -> str:
+    """Where entry ``name``'s raw results live in run directory ``out``."""
+    return os.path.join(out, "raw", f"{name}.npz")
+
+
+def save(out: str, name: str, raw: RawResults) -> None:
+    """Writes ``raw`` to ``raw/<name>.npz`` atomically."""
+    os.makedirs(os.path.join(out, "raw"), exist_ok=True)
+    target = path(out, name)
+    with open(target + ".tmp", "wb") as f:
+        np.savez(f, **dict(_leaves("", raw)))
+    os.replace(target + ".tmp", target)
+
+
+def load(out: str, name: str) -> Optional[RawResults]:
+    """Entry ``name``'s raw results, or None if it has not finished; RunError if the file cannot be read."""
+    target = path(out, name)
+    if not os.path.isfile(target):
+        return None
+    try:
+        with np.load(target) as f:
+            arrays = _upgrade({k: f[k] for k in f.files})
+        raw = _build(RawResults, "", arrays)
+    except Exception as err:  # noqa: BLE001 - any failure to read means the file is unusable
+        raise RunError(f"{target} cannot be read ({type(err).__name__}: {err}); delete it to rerun {name}") from err
+    return raw._replace(seconds=float(raw.seconds), devices=int(raw.devices))
