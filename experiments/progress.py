@@ -116,10 +116,11 @@ class Console:
         elif kind == "warning":
             self.log(f"warning: {event['message']}")
         elif kind == "iteration" and name in self.progress:
-            self.progress[name].record_iteration(event["member"], event["task"], event["iteration"], event["success_rate"])
+            self.progress[name].record_iteration(event["member"], event["task"], event["iteration"],
+                                                 event["success_rate"])
         elif kind == "meta_step" and name in self.progress:
-            self.progress[name].record_meta_step(event["member"], event["task"], event["meta_step"], event["meta_steps"],
-                                          event["bc_loss"])
+            self.progress[name].record_meta_step(event["member"], event["task"], event["meta_step"],
+                                                 event["meta_steps"], event["bc_loss"])
         elif kind == "chunk":
             entry, start, stop = event["entry"], event["start"], event["stop"]
             _report_chunk(self.log, entry, event["metrics"], start, stop, event["num_tasks"])

@@ -315,3 +315,47 @@ def test_evaluation_keys_never_equal_a_key_the_method_draws():
     # The derivation this replaces (evaluation keys folded from the method's own root) collides: the check bites.
     root = jax.random.PRNGKey(0)
     assert tuple(np.asarray(jax.random.fold_in(root, 1)).tolist()) in _keys_drawn_from(root)
+
+
+def _chunk_metrics(seeds, tasks, budget, nonfinite_at=None):
+    z = np.zeros((seeds, tasks, budget), np.float32)
+    valid = np.ones((seeds, tasks, budget), bool)
+    nonfinite = z.copy()
+    if nonfinite_at is not None:
+        nonfinite[nonfinite_at] = 1.0
+    task = TaskMetrics(np.full((seeds, tasks), budget, np.int32), np.zeros((seeds, tasks), bool),
+                       IterationMetrics(z - 5.0, z, z, z, z, z, nonfinite, valid))
+    return continual.ChunkMetrics(task, np.zeros((seeds, tasks, 0), np.float32), np.zeros((seeds, tasks, 0), bool))
+
+
+def test_console_turns_runner_events_into_lines(console, tmp_path):
+    lines = []
+    show = console.Console(lines.append, str(tmp_path), interval=0.0)
+    show({"event": "start", "program": "comps", "family": "point_goal", "sequence": "stationary", "num_tasks": 2,
+          "seeds": 3, "grid_points": 1, "padding": 1, "devices": 2, "budget": 4, "chunk": 1, "start_task": 0,
+          "members": ["comps seed 0", "comps seed 1", "comps seed 2", "comps seed 3"]})
+    show({"event": "iteration", "program": "comps", "member": 1, "task": 0, "iteration": 3, "success_rate": 0.5,
+          "mean_return": -3.0})
+    show({"event": "meta_step", "program": "comps", "member": 1, "task": 0, "meta_step": 7, "meta_steps": 125,
+          "bc_loss": 1.25})
+    metrics = _chunk_metrics(3, 1, 4, nonfinite_at=(2, 0, 1))
+    show({"event": "chunk", "program": "comps", "entry": "comps", "start": 0, "stop": 1, "num_tasks": 2,
+          "seeds": [0, 1, 2], "metrics": metrics, "per_task": metrics})
+    show({"event": "warning", "message": "checkpoint step 2 cannot be read"})
+    show({"event": "done", "program": "comps", "seconds": 75.0})
+    assert lines[0] == ("[comps] point_goal stationary, 2 tasks, 3 seeds (+1 to fill the devices, not reported) on 2 "
+                        "device(s), budget 4, chunks of 1; compiling...")
+    assert lines[1].startswith("[comps] task 1/2 iteration 3 success 0.12")
+    assert lines[2].startswith("[comps] task 1/2 meta-training step 7/125 bc loss 1.250")
+    assert lines[3] == "[comps] task 1/2 iterations-to-success per seed: [4, 4, 4] (mean 4.0)"
+    assert lines[4].startswith("error: [comps] non-finite values (NaN/inf) at seed 2, task 1, iteration 2")
+    assert lines[5] == "warning: checkpoint step 2 cannot be read" and lines[6] == "[comps] done in 1m15s"
+
+
+def test_console_writes_tensorboard(console, tmp_path):
+    pytest.importorskip("tensorboardX")
+    show = console.Console(lambda line: None, str(tmp_path), tensorboard=True)
+    metrics = _chunk_metrics(2, 2, 3)
+    show({"event": "chunk", "program": "ppo_tl", "entry": "ppo_tl", "start": 0, "stop": 2, "num_tasks": 2,
+          "seeds": [0, 1], "metrics": metrics, "per_task": metrics})
+    assert any(p.name.startswith("events.out.tfevents") for p in (tmp_path / "tensorboard" / "ppo_tl").iterdir())

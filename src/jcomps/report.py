@@ -328,9 +328,12 @@ def _plots(results: dict, raws: dict, directory: str) -> list[str]:
     ax_its.set(xlabel="tasks learnt", ylabel=f"iterations to success (cap {budget})",
                title="Held-out tasks: iterations to success")
     ax.set(xlabel="tasks learnt", ylabel="mean return on held-out tasks", title="Held-out tasks: return")
+    if budget == 0:
+        ax_its.text(0.5, 0.5, "not measured (--heldout-budget 0)", ha="center", va="center", transform=ax_its.transAxes)
     for a in (ax_its, ax):
         integer_ticks(a)
-        a.legend(fontsize=8)
+        if a.get_legend_handles_labels()[0]:
+            a.legend(fontsize=8)
     save(fig, "heldout_meta_test.png")
     return written
 
