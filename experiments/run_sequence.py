@@ -6,13 +6,17 @@
     python experiments/run_sequence.py --out runs/cheetah --resume       # continue after a kill
     python experiments/run_sequence.py --methods ppo_tl --grid learning_rate=0.01,0.005,0.001,0.0001 \
         --grid init_std=0.3,0.5,0.7                                      # 12 grid points x 4 seeds, one program
+    python experiments/run_sequence.py --methods comps gmps_ppo_is_x2 gmps_ppo_is gmps_ppo gmps ppo_tl \
+        --num-tasks 6 --seeds 2 --out runs/ladder                        # the paper's ablation ladder
+    python experiments/run_sequence.py --methods comps gmps_ppo --set gmps_ppo.meta.inner_learning_rate=0.01
 
 Every option is derived from a config dataclass (``RunConfig``, ``EvalConfig`` and the methods' configs);
 ``--help`` lists them. Seeds are a vmap axis sharded over the JAX devices (on CPU, ``--devices`` host devices
 let every core work). The run directory gets ``run.json``, checkpoints after every chunk of tasks,
 ``results.json``, ``plots/*.png`` and ``significance.md``; ``experiments/report.py DIR`` regenerates the last
 three. ``--grid FIELD=V1,V2,...`` (repeatable) runs every method at every point of the product of the values, an
-axis like the seeds (see ``jcomps.grid``). Bad options exit with code 2 and a message naming the option.
+axis like the seeds (see ``jcomps.grid``). ``--set METHOD.FIELD[.FIELD]=VALUE`` changes one method alone.
+Bad options exit with code 2 and a message naming the option.
 """
 
 from __future__ import annotations

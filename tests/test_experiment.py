@@ -217,6 +217,10 @@ def test_significance_matches_the_t_test_and_detects_equal_groups():
     assert s["p_ttest"] < 0.05 and abs(s["p_bootstrap"] - s["p_ttest"]) < 0.05
     same = report.significance(x, x + 1e-12, samples=2000)
     assert same["p_ttest"] > 0.9 and same["p_bootstrap"] > 0.9
+    # Two seeds each: a quarter of the resamples have both groups constant (t = ±inf), which are as extreme as
+    # the data, not ignored; the bootstrap cannot then go below ~1/4.
+    tiny = report.significance(np.array([49.0, 44.2]), np.array([54.0, 60.8]), samples=4000)
+    assert tiny["p_bootstrap"] > 0.2
 
 
 def test_backward_transfer_formula():

@@ -111,7 +111,9 @@ def significance(x, y, samples: int = BOOTSTRAP_SAMPLES, seed: int = 0) -> dict:
     x0, y0 = x - x.mean() + pooled, y - y.mean() + pooled
     rng = np.random.default_rng(seed)
     tb = _t_statistic(x0[rng.integers(0, len(x), (samples, len(x)))], y0[rng.integers(0, len(y), (samples, len(y)))])
-    tb = np.where(np.isfinite(tb), tb, 0.0)
+    # A resample whose groups are both constant has t = ±inf when their means differ (as extreme as it gets: it
+    # counts) and NaN when they are equal (t = 0).
+    tb = np.where(np.isnan(tb), 0.0, tb)
     out["p_bootstrap"] = float((np.sum(np.abs(tb) >= abs(t)) + 1) / (samples + 1))
     return out
 
