@@ -31,21 +31,22 @@ settings.register_profile("thorough", deadline=None, max_examples=500)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "fast"))
 
 
-@pytest.fixture(scope="session")
-def console():
-    """``experiments/progress.py`` (the runner's progress lines and TensorBoard) loaded as a module."""
-    path = pathlib.Path(__file__).resolve().parents[1] / "experiments" / "progress.py"
-    spec = importlib.util.spec_from_file_location("progress", path)
+def _load_script(name: str):
+    """``experiments/<name>.py`` loaded as a module."""
+    path = pathlib.Path(__file__).resolve().parents[1] / "experiments" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+@pytest.fixture(scope="session")
+def console():
+    """``experiments/progress.py`` (the runner's progress lines and TensorBoard) loaded as a module."""
+    return _load_script("progress")
 
 
 @pytest.fixture(scope="session")
 def runner():
     """``experiments/run_sequence.py`` loaded as a module (its ``parse_args`` and ``main``)."""
-    path = pathlib.Path(__file__).resolve().parents[1] / "experiments" / "run_sequence.py"
-    spec = importlib.util.spec_from_file_location("run_sequence", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return _load_script("run_sequence")

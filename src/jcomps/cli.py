@@ -125,20 +125,16 @@ def parse_value(tp, text: str):
     Raises ValueError."""
     origin, args = typing.get_origin(tp), typing.get_args(tp)
     text = text.strip()
-    if origin is typing.Union and type(None) in args:
-        if text.lower() == "none":
-            return None
-        return parse_value(next(a for a in args if a is not type(None)), text)
     try:
         if origin is tuple:
-            return tuple(args[0](x) for x in re.split(r"[x,\s]+", text) if x)
+            return tuple(args[0](x) for x in re.split(r"[x,\s]+", text))
         return _parser_for(tp)(text)
     except (ValueError, TypeError, argparse.ArgumentTypeError) as err:
         raise ValueError(f"cannot parse {text!r} as {getattr(tp, '__name__', tp)} ({err})") from None
 
 
-def _leaf(config, path: list[str], where: str):
-    """(type, current value) of the leaf field at ``path`` of ``config``; ValueError naming what is allowed."""
+def _leaf_type(config, path: list[str], where: str):
+    """The type of the leaf field at ``path`` of ``config``; ValueError naming what is allowed."""
     hints = typing.get_type_hints(type(config))
     names = [f.name for f in dataclasses.fields(config)]
     head = path[0]
@@ -149,10 +145,10 @@ def _leaf(config, path: list[str], where: str):
         if len(path) == 1:
             inner = [f.name for f in dataclasses.fields(current)]
             raise ValueError(f"{where}: {head} is a group of fields; name one: {head}.{{{','.join(inner)}}}")
-        return _leaf(current, path[1:], where)
+        return _leaf_type(current, path[1:], where)
     if len(path) > 1:
         raise ValueError(f"{where}: {head} is a field, not a group ({'.'.join(path[1:])} cannot follow it)")
-    return hints[head], current
+    return hints[head]
 
 
 def set_path(config, path, value):
@@ -179,7 +175,7 @@ def parse_overrides(specs, configs: dict) -> dict:
         where = f"--set {target.strip()}"
         if method not in configs:
             raise ValueError(f"{where}: method {method!r} is not in this run; its methods: {', '.join(configs)}")
-        tp, _ = _leaf(configs[method], path, where)
+        tp = _leaf_type(configs[method], path, where)
         try:
             value = parse_value(tp, text)
         except ValueError as err:

@@ -14,10 +14,9 @@ from typing import Any, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from jcomps import acting, ppo
-from jcomps.numerics import check_field
+from jcomps.numerics import check_field, concrete_max
 from jcomps.progress import ProgressFn, with_fields
 from jcomps.methods.base import Method, TaskMetrics
 
@@ -28,7 +27,7 @@ def check_capacity(method: Method, num_tasks: int, start=0) -> None:
     max_tasks = getattr(method.config, "max_tasks", None)
     if max_tasks is None:
         return
-    first = 0 if isinstance(start, jax.core.Tracer) else int(np.max(np.asarray(start)))
+    first = concrete_max(start) or 0
     if first + num_tasks > max_tasks:
         raise ValueError(f"invalid config value max_tasks={max_tasks}; allowed: at least the tasks learnt "
                          f"({first} + {num_tasks}): {method.name} keeps one experience slot per task")

@@ -157,15 +157,25 @@ def padded_seeds(seeds: int, devices: int) -> int:
 METHOD_SALT, EVAL_SALT = 0x6D657468, 0x6576616C  # "meth", "eval"
 
 
+def _salted(seeds: list[int], *salts: int) -> jax.Array:
+    """Each seed's key folded with ``salts`` in turn."""
+    def one(seed):
+        key = jax.random.PRNGKey(seed)
+        for salt in salts:
+            key = jax.random.fold_in(key, salt)
+        return key
+
+    return jax.vmap(one)(jnp.asarray(seeds, jnp.uint32))
+
+
 def method_keys(seeds: list[int]) -> jax.Array:
     """Each seed's key for ``method.init`` (everything the method draws descends from it)."""
-    return jax.vmap(lambda s: jax.random.fold_in(jax.random.PRNGKey(s), METHOD_SALT))(jnp.asarray(seeds, jnp.uint32))
+    return _salted(seeds, METHOD_SALT)
 
 
 def eval_keys(seeds: list[int], purpose: int) -> jax.Array:
     """Each seed's key for the evaluation ``purpose`` (1: backward transfer; 1000 + c: held-out after chunk c)."""
-    return jax.vmap(lambda s: jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(s), EVAL_SALT), purpose))(
-        jnp.asarray(seeds, jnp.uint32))
+    return _salted(seeds, EVAL_SALT, purpose)
 
 
 class MethodProgram:
@@ -436,7 +446,6 @@ def run(out: str, run_config: RunConfig, eval_config: continual.EvalConfig, meth
             if done and all(raw is not None for raw in done.values()):
                 progress_fn({"event": "skipped", "program": spec.label})
             else:
-                run_program(out, spec, run_config, eval_config, resume, progress_fn, programs)
-                done = {p.key: results.load(out, p.key) for p in spec.points}
+                done = run_program(out, spec, run_config, eval_config, resume, progress_fn, programs)
             raws.update(done)
     return raws

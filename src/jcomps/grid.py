@@ -19,12 +19,10 @@ order (``key``); tuple values are written ``128x64``. A method that has none of 
 
 from __future__ import annotations
 
-import argparse
 import copy
 import dataclasses
 import itertools
 import math
-import re
 import typing
 from typing import Any, Optional
 
@@ -123,16 +121,12 @@ def key(method: str, values) -> str:
 
 
 def _parse_value(field: str, tp, text: str):
-    origin, args = typing.get_origin(tp), typing.get_args(tp)
-    text = text.strip()
-    if not text:
+    if not text.strip():
         raise ValueError(f"--grid {field}: an empty value in the list")
     try:
-        if origin is tuple:
-            return tuple(args[0](x) for x in re.split(r"[x\s]+", text))
-        return cli._parser_for(tp)(text)
-    except (ValueError, TypeError, argparse.ArgumentTypeError) as err:
-        raise ValueError(f"--grid {field}: cannot parse {text!r} ({err})") from None
+        return cli.parse_value(tp, text)
+    except ValueError as err:
+        raise ValueError(f"--grid {field}: {err}") from None
 
 
 def parse(specs, classes: dict) -> Grid:

@@ -21,8 +21,8 @@ import jax.numpy as jnp
 import optax
 
 from jcomps import buffers, networks, vtrace
-from jcomps.progress import ProgressFn
 from jcomps.numerics import all_finite, check_field, keep_if_finite, masked_mean
+from jcomps.progress import ProgressFn
 
 
 @dataclasses.dataclass(frozen=True)
@@ -218,6 +218,13 @@ def task_chunk(config: MetaConfig, num_slots: int) -> int:
     return min(chunk, num_slots)
 
 
+def _seen(task_valid):
+    """(end, count) of bool[num_slots] ``task_valid``: one past the last seen slot (i32[]; loops over slots stop
+    there) and the number of seen slots (f32[], at least 1: the divisor of a mean over them)."""
+    end = jnp.max(jnp.where(task_valid, jnp.arange(1, task_valid.shape[0] + 1), 0))
+    return end, jnp.maximum(jnp.sum(task_valid.astype(jnp.float32)), 1.0)
+
+
 def meta_gradients(config: MetaConfig, policy, value, stores: buffers.SequenceStores, rng):
     """(mean L_BC, ∇_policy, ∇_value) over the valid slots, sampling each slot's batches.
 
@@ -230,7 +237,7 @@ def meta_gradients(config: MetaConfig, policy, value, stores: buffers.SequenceSt
     task_valid = jnp.asarray(stores.task_valid)
     num_slots = task_valid.shape[0]
     chunk = task_chunk(config, num_slots)
-    end = jnp.max(jnp.where(task_valid, jnp.arange(1, num_slots + 1), 0))
+    end, count = _seen(task_valid)
     grad_fn = jax.vmap(jax.grad(slot_objective, argnums=(1, 2), has_aux=True), in_axes=(None, None, None, 0, 0))
 
     def body(c, acc):
@@ -244,7 +251,6 @@ def meta_gradients(config: MetaConfig, policy, value, stores: buffers.SequenceSt
 
     zeros = jax.tree.map(jnp.zeros_like, (jnp.zeros((), jnp.float32), (policy, value)))
     loss, (g_policy, g_value) = jax.lax.fori_loop(0, (end + chunk - 1) // chunk, body, zeros)
-    count = jnp.maximum(jnp.sum(task_valid.astype(jnp.float32)), 1.0)
     scale = lambda tree: jax.tree.map(lambda x: x / count, tree)  # noqa: E731
     return loss / count, scale(g_policy), scale(g_value)
 
@@ -289,12 +295,13 @@ def meta_train(config: MetaConfig, state: MetaState, stores: buffers.SequenceSto
     steps = config.num_meta_steps * config.num_outer_steps
     keys = jax.random.split(rng, steps)
 
-    def apply(state: MetaState, loss, g, vg):
+    def apply(state: MetaState, loss, g, vg, keep=True):
+        """The Adam updates applied if ``keep`` and they are finite; (state, whether they were finite)."""
         finite = all_finite((loss, g, vg))
         up, popt = policy_opt.update(g, state.policy_opt, state.policy)
         vup, vopt = value_opt.update(vg, state.value_opt, state.value)
         new = MetaState(optax.apply_updates(state.policy, up), optax.apply_updates(state.value, vup), popt, vopt)
-        return keep_if_finite(finite, new, state), finite
+        return keep_if_finite(finite & keep, new, state), finite
 
     def report(step, loss):
         if progress_fn is not None:
@@ -311,9 +318,7 @@ def meta_train(config: MetaConfig, state: MetaState, stores: buffers.SequenceSto
         return jax.lax.scan(outer, state, (keys, jnp.arange(steps, dtype=jnp.int32)))
 
     task_valid = jnp.asarray(stores.task_valid)
-    num_slots = task_valid.shape[0]
-    end = jnp.max(jnp.where(task_valid, jnp.arange(1, num_slots + 1), 0))
-    count = jnp.maximum(jnp.sum(task_valid.astype(jnp.float32)), 1.0)
+    end, count = _seen(task_valid)
 
     def meta_step(state: MetaState, xs):
         step_keys, n = xs  # step_keys: [num_outer_steps] keys of outer steps (n, 0 ... K-1)
@@ -323,9 +328,8 @@ def meta_train(config: MetaConfig, state: MetaState, stores: buffers.SequenceSto
 
             def one(state, key):
                 loss, g, vg = slot_gradients(config, state.policy, state.value, stores, key, j)
-                new, finite = apply(state, loss, g, vg)
-                new = keep_if_finite(task_valid[j], new, state)
-                return new, jnp.where(finite, loss, jnp.nan)
+                state, finite = apply(state, loss, g, vg, keep=task_valid[j])
+                return state, jnp.where(finite, loss, jnp.nan)
 
             state, losses = jax.lax.scan(one, state, step_keys)
             return state, total + jnp.where(task_valid[j], losses, 0.0)

@@ -4,9 +4,11 @@ finiteness checks, the skip-if-non-finite update, and the config-field check beh
 from __future__ import annotations
 
 import math
+from typing import Optional
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 
 def check_field(ok: bool, field: str, value, allowed: str):
@@ -23,6 +25,14 @@ def masked_mean(x, mask):
 def all_finite(tree) -> jax.Array:
     """bool[]: whether every leaf of ``tree`` is free of NaN and infinity."""
     return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree)]))
+
+
+def concrete_max(x) -> Optional[int]:
+    """The largest value of the integer array ``x`` when it is concrete; None while it is being traced (a check
+    on it cannot run then)."""
+    if isinstance(x, jax.core.Tracer):
+        return None
+    return int(np.max(np.asarray(x)))
 
 
 def keep_if_finite(finite: jax.Array, new, old):

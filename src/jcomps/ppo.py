@@ -21,9 +21,9 @@ import jax.numpy as jnp
 import optax
 
 from jcomps import acting, networks
-from jcomps.progress import ProgressFn
-from jcomps.numerics import all_finite, check_field, keep_if_finite, masked_mean
 from jcomps.envs.base import Family
+from jcomps.numerics import all_finite, check_field, keep_if_finite, masked_mean
+from jcomps.progress import ProgressFn
 
 
 @dataclasses.dataclass(frozen=True)

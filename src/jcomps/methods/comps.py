@@ -13,10 +13,9 @@ from typing import Any, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from jcomps import buffers, meta, networks, ppo
-from jcomps.numerics import check_field
+from jcomps.numerics import check_field, concrete_max
 from jcomps.progress import ProgressFn, with_fields
 from jcomps.envs.base import Family
 from jcomps.methods.base import Method, TaskMetrics
@@ -88,9 +87,10 @@ def make(family: Family, config: CoMPSConfig = CoMPSConfig(), progress_fn: Optio
         return buffers.skilled_update(skilled, traj), buffers.recent_add(recent, traj)
 
     def learn_task(state: CoMPSState, task) -> tuple[CoMPSState, TaskMetrics]:
-        if not isinstance(state.task_index, jax.core.Tracer) and int(np.max(state.task_index)) >= config.max_tasks:
-            raise ValueError(f"{name}: task {int(np.max(state.task_index)) + 1} is past max_tasks="
-                             f"{config.max_tasks} (one experience slot per task); make the method with more")
+        index = concrete_max(state.task_index)
+        if index is not None and index >= config.max_tasks:
+            raise ValueError(f"{name}: task {index + 1} is past max_tasks={config.max_tasks} (one experience slot "
+                             "per task); make the method with more")
         rng, k_rl, k_off, k_meta = jax.random.split(state.rng, 4)
         opt_state = optimizer.init(state.params) if config.reset_optimizer else state.opt_state
         aux0 = (buffers.skilled_init(T, config.num_skilled, family.obs_size, family.action_size),
