@@ -50,3 +50,15 @@ def console():
 def runner():
     """``experiments/run_sequence.py`` loaded as a module (its ``parse_args`` and ``main``)."""
     return _load_script("run_sequence")
+
+
+@pytest.fixture(scope="session")
+def merge_runs():
+    """``experiments/merge_runs.py`` loaded as a module (its ``merge``)."""
+    return _load_script("merge_runs")
+
+
+@pytest.fixture(scope="session")
+def render():
+    """``experiments/render.py`` loaded as a module (its ``render``)."""
+    return _load_script("render")

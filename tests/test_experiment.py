@@ -363,3 +363,45 @@ def test_console_writes_tensorboard(console, tmp_path):
     show({"event": "chunk", "program": "ppo_tl", "entry": "ppo_tl", "start": 0, "stop": 2, "num_tasks": 2,
           "seeds": [0, 1], "metrics": metrics, "per_task": metrics})
     assert any(p.name.startswith("events.out.tfevents") for p in (tmp_path / "tensorboard" / "ppo_tl").iterdir())
+
+
+def _one_method_copy(full_run, dest, name):
+    """A copy of ``full_run`` as if it had run ``name`` alone."""
+    shutil.copytree(full_run, dest, ignore=shutil.ignore_patterns("checkpoints", "plots", "results.json"))
+    desc = json.loads((dest / "run.json").read_text())
+    other = [m for m in desc["run"]["methods"] if m != name]
+    desc["run"]["methods"] = [name]
+    desc["methods"] = {name: desc["methods"][name]}
+    (dest / "run.json").write_text(json.dumps(desc))
+    for m in other:
+        (dest / "raw" / f"{m}.npz").unlink()
+    return dest
+
+
+def test_merged_runs_report_as_one_run(merge_runs, full_run, tmp_path):
+    a = _one_method_copy(full_run, tmp_path / "a", "comps")
+    b = _one_method_copy(full_run, tmp_path / "b", "ppo_tl")
+    merged = merge_runs.merge(str(tmp_path / "m"), [str(a), str(b)])
+    assert merged == json.loads((full_run / "results.json").read_text()) | {"plots": merged["plots"]}
+    assert (tmp_path / "m" / "plots" / "iterations_to_success.png").exists()
+    with pytest.raises(experiment.RunError, match="already holds a run"):
+        merge_runs.merge(str(tmp_path / "m"), [str(a), str(b)])
+    with pytest.raises(experiment.RunError, match="comps is in more than one source"):
+        merge_runs.merge(str(tmp_path / "m2"), [str(a), str(a)])
+    desc = json.loads((b / "run.json").read_text())
+    desc["run"]["seeds"] = 3
+    (b / "run.json").write_text(json.dumps(desc))
+    with pytest.raises(experiment.RunError, match=r"not the same study as .*run.seeds: run has 2, asked 3"):
+        merge_runs.merge(str(tmp_path / "m3"), [str(a), str(b)])
+    (a / "raw" / "comps.npz").unlink()
+    with pytest.raises(experiment.RunError, match="comps has not finished"):
+        merge_runs.merge(str(tmp_path / "m4"), [str(a)])
+
+
+def test_render_draws_point_goal_episodes(render, full_run, tmp_path):
+    lines = []
+    paths = render.render(str(full_run), tasks=[1, 3], out_dir=str(tmp_path), print_fn=lines.append)
+    assert [p.split("/")[-1] for p in paths] == ["comps_seed0_task01.png", "comps_seed0_task03.png",
+                                                 "ppo_tl_seed0_task01.png", "ppo_tl_seed0_task03.png"]
+    assert all(os.path.getsize(p) > 1000 for p in paths)
+    assert all(re.search(r"success rate \d\.\d\d over 2 episodes \(threshold 0\.7\)", line) for line in lines)

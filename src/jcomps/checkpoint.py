@@ -88,6 +88,31 @@ class Checkpoints:
         return None
 
 
+def read_latest(directory: str, warn) -> Optional[tuple[int, dict]]:
+    """The newest readable checkpoint in ``directory`` as saved (numpy arrays), read-only: nothing is written or
+    moved; an unreadable step is reported through ``warn(message)`` and the one before it tried. None when the
+    directory holds no checkpoint."""
+    import absl.logging
+    import orbax.checkpoint as ocp
+
+    if not os.path.isdir(directory):
+        return None
+    verbosity = absl.logging.get_verbosity()
+    absl.logging.set_verbosity(absl.logging.ERROR)  # Orbax announces read-only mode as a warning
+    try:
+        manager = ocp.CheckpointManager(os.path.abspath(directory), options=ocp.CheckpointManagerOptions(
+            read_only=True, create=False, enable_async_checkpointing=False))
+        for step in sorted(manager.all_steps(), reverse=True):
+            try:
+                return step, jax.tree.map(np.asarray, manager.restore(step, args=ocp.args.StandardRestore()))
+            except Exception as err:  # noqa: BLE001 - any failure to read means this checkpoint is unusable
+                warn(f"checkpoint step {step} in {directory} cannot be read ({type(err).__name__}: "
+                     f"{str(err)[:300]}); trying the one before")
+    finally:
+        absl.logging.set_verbosity(verbosity)
+    return None
+
+
 def _check_like(like: dict, got: dict):
     """Raises RunError unless ``got`` has the structure, shapes and dtypes of ``like``."""
     if jax.tree.structure(like) != jax.tree.structure(got):

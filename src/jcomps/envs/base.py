@@ -88,6 +88,8 @@ class Family:
         terminated states).
       reset_fn, step_fn: the family's raw physics; use ``reset`` and ``step``, which add dtypes and the
         absorbing-termination rule.
+      system: the brax ``System`` the MuJoCo families simulate (``EnvState.sim`` is its pipeline state), for
+        rendering with ``brax.io.html``; None for Point Goal.
     """
 
     name: str
@@ -104,6 +106,7 @@ class Family:
     reset_fn: Callable[[jax.Array, Any], EnvState]
     step_fn: Callable[[EnvState, jax.Array, Any], EnvState]
     can_terminate: bool = False
+    system: Any = None
 
     def reset(self, rng: jax.Array, task) -> EnvState:
         """Starts an episode of ``task``; ``rng`` is a PRNG key. Returns the initial ``EnvState``."""

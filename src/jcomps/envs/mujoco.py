@@ -137,7 +137,7 @@ def _mjx_family(model: str, obs_fn, outcome_fn, **facts) -> base.Family:
         reward, success, done = outcome_fn(state.sim.q, ps.q, action, task, dt)
         return base.make_env_state(ps, obs_fn(ps), reward, done, success, state.t)
 
-    return base.Family(max_steps=MAX_STEPS, reset_fn=reset, step_fn=step, **facts)
+    return base.Family(max_steps=MAX_STEPS, reset_fn=reset, step_fn=step, system=env.sys, **facts)
 
 
 def _cheetah_outcome(q0, q, action, task, dt):

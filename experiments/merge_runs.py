@@ -1,0 +1,97 @@
+"""Merge run directories that ran different methods of the same study into one, and write its report.
+
+Methods of one study can run in separate processes, e.g. side by side on one GPU, where a method alone leaves
+the GPU mostly idle, or on different machines: give each its own ``--out`` with the same options apart from
+``--methods``, then merge. Everything but the methods must agree (family, sequence, seeds, tasks, chunking,
+evaluation, grid, device count); the methods must not overlap and must have finished. The merged directory
+gets ``run.json`` and ``raw/``, then ``results.json``, the plots and ``significance.md`` as if one run had run
+them all (checkpoints stay in the sources).
+
+    python experiments/merge_runs.py runs/hc20 runs/hc20-comps runs/hc20-ppo_tl [--baseline ppo_tl]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import sys
+
+from jcomps import experiment, report, results
+
+
+def merged_description(descriptions: list) -> dict:
+    """The run.json of the merged study from the sources' ([(directory, description)]); raises RunError naming
+    what differs."""
+    dirs = [d for d, _ in descriptions]
+    first = descriptions[0][1]
+    out = json.loads(json.dumps(first))
+    out["run"]["methods"], out["methods"], overrides = [], {}, {}
+    for d, desc in descriptions:
+        for key in sorted(set(first) | set(desc)):
+            if key in ("methods", "overrides"):
+                continue
+            a, b = first.get(key), desc.get(key)
+            if key == "run":
+                a, b = {**a, "methods": None}, {**b, "methods": None}
+            if a != b:
+                diff = experiment._differences({key: a}, {key: b})
+                raise experiment.RunError(f"{d} is not the same study as {dirs[0]}: " + "; ".join(diff[:4]))
+        for name in desc["run"]["methods"]:
+            if name in out["methods"]:
+                raise experiment.RunError(f"method {name} is in more than one source ({d} and an earlier one); "
+                                          "merge runs of different methods")
+            out["run"]["methods"].append(name)
+            out["methods"][name] = desc["methods"][name]
+            if name in desc.get("overrides", {}):
+                overrides[name] = desc["overrides"][name]
+    out.pop("overrides", None)
+    if overrides:
+        out["overrides"] = overrides
+    return out
+
+
+def merge(out: str, sources: list[str], baseline=None) -> dict:
+    """Writes the merged study into ``out`` (a new directory) and its report; returns the report's results."""
+    if os.path.exists(os.path.join(out, "run.json")):
+        raise experiment.RunError(f"{out} already holds a run; merge into a new directory")
+    descriptions = []
+    for d in sources:
+        path = os.path.join(d, "run.json")
+        if not os.path.isfile(path):
+            raise experiment.RunError(f"{d} is not a run directory (no run.json)")
+        with open(path) as f:
+            descriptions.append((d, json.load(f)))
+    description = merged_description(descriptions)
+    copies = []
+    for d, desc in descriptions:
+        for _, entry, _ in report._entries(desc):
+            if results.load(d, entry) is None:
+                raise experiment.RunError(f"{d}: {entry} has not finished; continue it with --resume first")
+            copies.append((os.path.join(d, "raw", f"{entry}.npz"), entry))
+    os.makedirs(os.path.join(out, "raw"), exist_ok=True)
+    for src, entry in copies:
+        shutil.copy2(src, os.path.join(out, "raw", f"{entry}.npz"))
+    experiment._write_json(os.path.join(out, "run.json"), description)
+    return report.write(out, baseline=baseline)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("out", help="the merged run directory (new)")
+    parser.add_argument("sources", nargs="+", help="run directories written by experiments/run_sequence.py")
+    parser.add_argument("--baseline", default=None, metavar="METHOD",
+                        help="the method the significance table compares every other one with (default: comps)")
+    args = parser.parse_args(argv)
+    try:
+        merge(args.out, args.sources, args.baseline)
+    except experiment.RunError as err:
+        print(f"error: {err}", file=sys.stderr)
+        sys.exit(2)
+    print(open(os.path.join(args.out, "significance.md")).read())
+    print(f"wrote {args.out}/run.json, raw/, results.json, plots/ and significance.md")
+
+
+if __name__ == "__main__":
+    main()
