@@ -7,7 +7,7 @@ evaluation, grid, device count); the methods must not overlap and must have fini
 gets ``run.json`` and ``raw/``, then ``results.json``, the plots and ``significance.md`` as if one run had run
 them all (checkpoints stay in the sources).
 
-    python experiments/merge_runs.py runs/hc20 runs/hc20-comps runs/hc20-ppo_tl [--baseline ppo_tl]
+    python experiments/merge_runs.py runs/hc20 runs/hc20-a runs/hc20-b [--baseline ppo_tl] [--methods comps ppo_tl]
 """
 
 from __future__ import annotations
@@ -52,8 +52,20 @@ def merged_description(descriptions: list) -> dict:
     return out
 
 
-def merge(out: str, sources: list[str], baseline=None) -> dict:
-    """Writes the merged study into ``out`` (a new directory) and its report; returns the report's results."""
+def _only(description: dict, names) -> dict:
+    """``description`` restricted to the methods in ``names``."""
+    out = json.loads(json.dumps(description))
+    out["run"]["methods"] = [m for m in out["run"]["methods"] if m in names]
+    out["methods"] = {m: c for m, c in out["methods"].items() if m in names}
+    if "overrides" in out:
+        out["overrides"] = {m: v for m, v in out["overrides"].items() if m in names}
+    return out
+
+
+def merge(out: str, sources: list[str], baseline=None, methods_=None) -> dict:
+    """Writes the merged study into ``out`` (a new directory) and its report; returns the report's results.
+    ``methods_`` (default: all) takes only these methods from the sources, e.g. the finished ones of a run whose
+    later methods are still going."""
     if os.path.exists(os.path.join(out, "run.json")):
         raise experiment.RunError(f"{out} already holds a run; merge into a new directory")
     descriptions = []
@@ -63,6 +75,14 @@ def merge(out: str, sources: list[str], baseline=None) -> dict:
             raise experiment.RunError(f"{d} is not a run directory (no run.json)")
         with open(path) as f:
             descriptions.append((d, json.load(f)))
+    if methods_:
+        found = [m for _, desc in descriptions for m in desc["run"]["methods"]]
+        missing = [m for m in methods_ if m not in found]
+        if missing:
+            raise experiment.RunError(f"--methods {' '.join(missing)}: not in the sources; they have "
+                                      f"{', '.join(found)}")
+        descriptions = [(d, _only(desc, methods_)) for d, desc in descriptions]
+        descriptions = [(d, desc) for d, desc in descriptions if desc["run"]["methods"]]
     description = merged_description(descriptions)
     copies = []
     for d, desc in descriptions:
@@ -83,9 +103,11 @@ def main(argv=None):
     parser.add_argument("sources", nargs="+", help="run directories written by experiments/run_sequence.py")
     parser.add_argument("--baseline", default=None, metavar="METHOD",
                         help="the method the significance table compares every other one with (default: comps)")
+    parser.add_argument("--methods", nargs="+", default=None,
+                        help="take only these methods from the sources (default: all; e.g. the finished ones)")
     args = parser.parse_args(argv)
     try:
-        merge(args.out, args.sources, args.baseline)
+        merge(args.out, args.sources, args.baseline, args.methods)
     except experiment.RunError as err:
         print(f"error: {err}", file=sys.stderr)
         sys.exit(2)

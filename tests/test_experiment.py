@@ -396,6 +396,12 @@ def test_merged_runs_report_as_one_run(merge_runs, full_run, tmp_path):
     (a / "raw" / "comps.npz").unlink()
     with pytest.raises(experiment.RunError, match="comps has not finished"):
         merge_runs.merge(str(tmp_path / "m4"), [str(a)])
+    # The finished methods of a run whose others are still going.
+    shutil.rmtree(tmp_path / "m")
+    only = merge_runs.merge(str(tmp_path / "m"), [str(full_run)], methods_=["ppo_tl"])
+    assert list(only["methods"]) == ["ppo_tl"] and only["methods"]["ppo_tl"] == merged["methods"]["ppo_tl"]
+    with pytest.raises(experiment.RunError, match="--methods gmps: not in the sources; they have comps, ppo_tl"):
+        merge_runs.merge(str(tmp_path / "m5"), [str(full_run)], methods_=["gmps"])
 
 
 def test_render_draws_point_goal_episodes(render, full_run, tmp_path):
