@@ -411,3 +411,20 @@ def test_render_draws_point_goal_episodes(render, full_run, tmp_path):
                                                  "ppo_tl_seed0_task01.png", "ppo_tl_seed0_task03.png"]
     assert all(os.path.getsize(p) > 1000 for p in paths)
     assert all(re.search(r"success rate \d\.\d\d over 2 episodes \(threshold 0\.7\)", line) for line in lines)
+
+
+def test_read_latest_skips_an_unreadable_step_and_changes_nothing(full_run, tmp_path):
+    copy = tmp_path / "ckpt"
+    shutil.copytree(full_run / "checkpoints" / "ppo_tl", copy)
+    steps = sorted(int(p.name) for p in copy.iterdir() if p.name.isdigit())
+    step, tree = checkpoint.read_latest(str(copy), print)
+    assert step == steps[-1] and int(tree["counters"]["next_chunk"]) == steps[-1]
+    for path in (copy / str(steps[-1])).rglob("*"):
+        if path.is_file():
+            path.write_bytes(b"garbage")
+    before = sorted(str(p) for p in tmp_path.rglob("*"))
+    warnings = []
+    step, tree = checkpoint.read_latest(str(copy), warnings.append)
+    assert step == steps[-2] and "cannot be read" in warnings[0]
+    assert sorted(str(p) for p in tmp_path.rglob("*")) == before  # read-only: nothing moved or written
+    assert checkpoint.read_latest(str(tmp_path / "none"), print) is None
