@@ -68,13 +68,7 @@ def merge(out: str, sources: list[str], baseline=None, methods_=None) -> dict:
     later methods are still going."""
     if os.path.exists(os.path.join(out, "run.json")):
         raise experiment.RunError(f"{out} already holds a run; merge into a new directory")
-    descriptions = []
-    for d in sources:
-        path = os.path.join(d, "run.json")
-        if not os.path.isfile(path):
-            raise experiment.RunError(f"{d} is not a run directory (no run.json)")
-        with open(path) as f:
-            descriptions.append((d, json.load(f)))
+    descriptions = [(d, report.read_description(d)) for d in sources]
     if methods_:
         found = [m for _, desc in descriptions for m in desc["run"]["methods"]]
         missing = [m for m in methods_ if m not in found]

@@ -20,7 +20,6 @@ the goal instead.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 
@@ -28,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jcomps import checkpoint, cli, continual, envs, experiment, methods, networks
+from jcomps import checkpoint, cli, continual, envs, experiment, methods, networks, report
 from jcomps import grid as grids
 
 
@@ -50,14 +49,6 @@ def _episodes(family, policy, task, rng, episodes: int, mean):
     first = jax.tree.map(lambda x: x[0], state.sim)
     sims = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), first, sims)
     return sims, rewards, success, jnp.concatenate([state.obs[None, :, :2], xy])
-
-
-def _description(run_dir: str) -> dict:
-    path = os.path.join(run_dir, "run.json")
-    if not os.path.isfile(path):
-        raise experiment.RunError(f"{run_dir} is not a run directory (no run.json)")
-    with open(path) as f:
-        return json.load(f)
 
 
 def _specs(description: dict, family) -> dict:
@@ -120,7 +111,7 @@ def _plot_point_goal(path, xy, goal, title):
 def render(run_dir: str, methods_=None, seed=None, tasks=None, mean=False, episodes=None, base_url=None,
            out_dir=None, print_fn=print) -> list[str]:
     """Writes the viewers (see the module docstring); returns their paths."""
-    description = _description(run_dir)
+    description = report.read_description(run_dir)
     run = description["run"]
     family = envs.make(run["family"])
     specs = _specs(description, family)
@@ -152,11 +143,9 @@ def render(run_dir: str, methods_=None, seed=None, tasks=None, mean=False, episo
                 member = p * run["seeds"] + (seed - run["seed"])
                 policy = jax.tree.map(lambda x: jnp.asarray(x[member]), policies)
                 for t in tasks or [learnt]:
-                    task = family.tasks(values[t - 1:t])
-                    task = jax.tree.map(lambda x: x[0], task)
+                    task = envs.task_at(family, t - 1, run["sequence"], seed)
                     rng = jax.random.fold_in(jax.random.PRNGKey(seed), t)
-                    sims, rewards, success, xy = episode_fn(family, policy, task, rng, n_episodes,
-                                                                           jnp.float32(mean))
+                    sims, rewards, success, xy = episode_fn(family, policy, task, rng, n_episodes, jnp.float32(mean))
                     rate = float(family.success_rate(success))
                     ret = float(jnp.mean(jnp.sum(rewards, axis=0)))
                     note = "" if t <= learnt else f", not learnt yet (the policy after task {learnt})"

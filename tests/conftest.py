@@ -40,25 +40,16 @@ def _load_script(name: str):
     return module
 
 
-@pytest.fixture(scope="session")
-def console():
-    """``experiments/progress.py`` (the runner's progress lines and TensorBoard) loaded as a module."""
-    return _load_script("progress")
+def _script_fixture(fixture_name: str, script: str, doc: str):
+    """A session fixture ``fixture_name``: ``experiments/<script>.py`` loaded as a module."""
+    def fixture():
+        return _load_script(script)
+
+    fixture.__doc__ = doc
+    return pytest.fixture(scope="session", name=fixture_name)(fixture)
 
 
-@pytest.fixture(scope="session")
-def runner():
-    """``experiments/run_sequence.py`` loaded as a module (its ``parse_args`` and ``main``)."""
-    return _load_script("run_sequence")
-
-
-@pytest.fixture(scope="session")
-def merge_runs():
-    """``experiments/merge_runs.py`` loaded as a module (its ``merge``)."""
-    return _load_script("merge_runs")
-
-
-@pytest.fixture(scope="session")
-def render():
-    """``experiments/render.py`` loaded as a module (its ``render``)."""
-    return _load_script("render")
+console = _script_fixture("console", "progress", "The runner's progress lines and TensorBoard logs.")
+runner = _script_fixture("runner", "run_sequence", "The runner (its ``parse_args`` and ``main``).")
+merge_runs = _script_fixture("merge_runs", "merge_runs", "Merging runs (its ``merge``).")
+render = _script_fixture("render", "render", "Policy replays (its ``render``).")

@@ -394,14 +394,19 @@ def grid_table(results: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write(out: str, baseline: Optional[str] = None) -> Optional[dict]:
-    """(Re)writes ``results.json``, the plots and ``significance.md`` of run directory ``out``; the significance
-    table compares ``baseline`` (default: ``comps`` when the run has it) with every other method."""
+def read_description(out: str) -> dict:
+    """The ``run.json`` of run directory ``out``; RunError if it has none."""
     run_json = os.path.join(out, "run.json")
     if not os.path.isfile(run_json):
         raise experiment.RunError(f"{out} is not a run directory (no run.json)")
     with open(run_json) as f:
-        description = json.load(f)
+        return json.load(f)
+
+
+def write(out: str, baseline: Optional[str] = None) -> Optional[dict]:
+    """(Re)writes ``results.json``, the plots and ``significance.md`` of run directory ``out``; the significance
+    table compares ``baseline`` (default: ``comps`` when the run has it) with every other method."""
+    description = read_description(out)
     raws = {}
     for method, name, _ in _entries(description):
         raw = results_.load(out, name)
