@@ -15,6 +15,10 @@ TINY = ["--family", "cheetah_vel", "--methods", "ppo_tl", "--num-tasks", "3", "-
         "--minibatch-size", "16", "--backward-tasks", "0", "--heldout-iterations", "0"]
 
 
+# A MuJoCo run compiles for minutes on a 2-core CPU: CI skips these (run them with `pytest -m slow`); the Point
+# Goal replay test in test_experiment.py runs in CI.
+pytestmark = pytest.mark.slow
+
 PROGRAMS = experiment.Programs()
 
 

@@ -285,6 +285,8 @@ ProgressReceiver = Callable[[dict], None]
 - ``iteration`` / ``meta_step``: a member's progress inside a chunk (``program``, ``member``, ``task`` and the
   ``jcomps.progress`` metrics: ``iteration``, ``success_rate``, ``mean_return`` / ``meta_step``,
   ``meta_steps``, ``bc_loss``);
+- ``compress_iteration``: the same for a compress phase of ``pnc`` (``compress_iteration``, ``compress_iterations``,
+  ``kl``);
 - ``chunk``: a chunk of tasks is done, per results entry (``program``, ``entry``, ``start``, ``stop``,
   ``num_tasks``, ``seeds``, ``metrics``: its members' ChunkMetrics, ``per_task``: every task's so far), after
   the checkpoint is written;
@@ -388,7 +390,7 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
         jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), 0), np.asarray(src)), heldout, out_h)
 
     def receive(metrics: dict):
-        kind = "iteration" if "iteration" in metrics else "meta_step"
+        kind = next((k for k in ("iteration", "meta_step", "compress_iteration") if k in metrics), "meta_step")
         progress_fn({"event": kind, "program": name, **{k: v.item() for k, v in metrics.items()}})
 
     # The reported members of each point (padding members are dropped).

@@ -122,8 +122,66 @@ def init_actor_critic(rng: jax.Array, obs_size: int, action_size: int, hidden_si
 
 
 def policy_dist(policy: dict, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """Mean f32[..., A] and log-std f32[A] of the Gaussian policy at (raw) ``obs`` f32[..., obs_size]."""
+    """Mean f32[..., A] and log-std f32[A] of the Gaussian policy at (raw) ``obs`` f32[..., obs_size].
+
+    A policy with a ``kb`` entry is an *active column* (Progress & Compress, ``column_mean``)."""
+    if "kb" in policy:
+        return column_mean(policy, obs), policy["log_std"]
     return mlp_apply(policy["mean"], normalize_obs(policy, obs)), policy["log_std"]
+
+
+def adaptors_init(rng: jax.Array, sizes: Sequence[int]) -> list[dict]:
+    """Layer-wise adaptors of an active column whose layers are ``sizes[0] -> ... -> sizes[-1]``: one for every
+    layer i >= 2 (its input from the knowledge base is the KB's hidden layer i − 1, of width ``sizes[i - 1]``).
+
+    Adaptor i (Schwarz et al. 2018, eq. 1, after Rusu et al. 2016): ``α_i ⊙ U_i tanh(V_i h^KB_{i−1} + c_i)``, an MLP
+    with one hidden layer as wide as its input, and a trainable scale vector α_i ~ U(0, 0.1) of layer i's width.
+    """
+    out = []
+    keys = jax.random.split(rng, max(1, 2 * (len(sizes) - 2)))
+    for i in range(1, len(sizes) - 1):
+        n_in, n_out = sizes[i], sizes[i + 1]
+        kv, ku = keys[2 * (i - 1)], keys[2 * (i - 1) + 1]
+        out.append({
+            "v": jax.nn.initializers.orthogonal(math.sqrt(2.0))(kv, (n_in, n_in), jnp.float32),
+            "c": jnp.zeros((n_in,), jnp.float32),
+            "u": jax.nn.initializers.orthogonal(1.0)(ku, (n_in, n_out), jnp.float32),
+            "alpha": jax.random.uniform(jax.random.fold_in(ku, 1), (n_out,), jnp.float32, 0.0, 0.1),
+        })
+    return out
+
+
+def kb_features(kb: dict, obs: jax.Array) -> list[jax.Array]:
+    """The hidden activations h^KB_1 … h^KB_{L−1} of the knowledge base's mean MLP at raw ``obs`` (its own
+    observation statistics), with no gradient into the knowledge base."""
+    kb = jax.lax.stop_gradient(kb)
+    h = normalize_obs(kb, obs)
+    feats = []
+    for layer in kb["mean"][:-1]:
+        h = jnp.tanh(h @ layer["w"] + layer["b"])
+        feats.append(h)
+    return feats
+
+
+def column_mean(policy: dict, obs: jax.Array) -> jax.Array:
+    """Action mean f32[..., A] of an active column: ``policy['mean']`` layers, with adaptor i adding
+    ``α_i ⊙ U_i tanh(V_i h^KB_{i−1} + c_i)`` to layer i's pre-activation (i >= 2; the last layer is linear).
+
+    ``policy['kb']`` (the frozen knowledge base, a plain policy) gets no gradient: the lateral connections carry
+    gradient into the active column and its adaptors only.
+    """
+    lead = obs.shape[:-1]
+    obs = obs.reshape((-1, obs.shape[-1]))
+    feats = kb_features(policy["kb"], obs)
+    h = normalize_obs(policy, obs)
+    layers = policy["mean"]
+    for i, layer in enumerate(layers):
+        pre = h @ layer["w"] + layer["b"]
+        if i >= 1:
+            a = policy["adaptors"][i - 1]
+            pre = pre + a["alpha"] * (jnp.tanh(feats[i - 1] @ a["v"] + a["c"]) @ a["u"])
+        h = pre if i == len(layers) - 1 else jnp.tanh(pre)
+    return h.reshape(lead + h.shape[-1:])
 
 
 def gaussian_log_prob(mean: jax.Array, log_std: jax.Array, action: jax.Array) -> jax.Array:

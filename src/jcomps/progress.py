@@ -7,7 +7,8 @@ host function through ``jax.debug.callback``). The dicts carry:
 - after every RL iteration (``ppo.rl_step``): ``iteration``, ``success_rate``, ``mean_return``;
 - after every outer update of a meta-training phase (``meta.meta_train``): ``meta_step``, ``meta_steps``,
   ``bc_loss``;
-- methods add ``task`` (the index of the task being learnt) to both;
+- after every iteration of a compress phase (``pnc``): ``compress_iteration``, ``compress_iterations``, ``kl``;
+- methods add ``task`` (the index of the task being learnt) to all of these;
 - after every task of the continual loop (``continual.run_tasks``): ``task``, ``task_iterations``, ``solved``.
 
 Because the hook runs at trace level, a caller can close it over traced values of its own (the runner closes it

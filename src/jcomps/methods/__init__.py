@@ -11,6 +11,12 @@ A registered method is a constructor and its default config *instance*: the rung
 - ``gmps_ppo_is``: + the importance-sampled inner gradient with the V-trace baseline (no warm start);
 - ``gmps_ppo_is_x2``: + twice the skilled data (|D*_i| = 40; no warm start);
 - ``comps``: GMPS + PPO + IS + the FTML warm start, CoMPS.
+
+The paper's other continual baselines:
+
+- ``maml_tl``: on-policy MAML in online mode, meta-training on the latest task only (MAML+TL);
+- ``pnc``: Progress & Compress: PPO in an active column with lateral adaptors from a frozen knowledge base, then
+  distillation into the knowledge base under online EWC.
 """
 
 from __future__ import annotations
@@ -20,7 +26,7 @@ from typing import Any, Callable, NamedTuple, Optional
 
 from jcomps import meta, ppo
 from jcomps.envs.base import Family
-from jcomps.methods import comps, ppo_tl
+from jcomps.methods import comps, maml_tl, pnc, ppo_tl
 from jcomps.methods.base import Method, TaskMetrics
 from jcomps.progress import ProgressFn
 
@@ -52,6 +58,8 @@ REGISTRY: dict[str, Registered] = {
     "gmps_ppo": Registered(comps.CoMPSConfig(meta=_NO_IS, warm_start=False), comps.named("gmps_ppo")),
     "gmps_ppo_is": Registered(comps.CoMPSConfig(warm_start=False), comps.named("gmps_ppo_is")),
     "gmps_ppo_is_x2": Registered(comps.CoMPSConfig(warm_start=False, num_skilled=40), comps.named("gmps_ppo_is_x2")),
+    "maml_tl": Registered(maml_tl.MAMLTLConfig(), maml_tl.make),
+    "pnc": Registered(pnc.PNCConfig(), pnc.make),
 }
 METHODS = tuple(REGISTRY)
 

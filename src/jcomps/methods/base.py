@@ -15,7 +15,7 @@ arguments only; the continual loop (``jcomps.continual``) never knows which meth
 
 from __future__ import annotations
 
-from typing import Any, Callable, NamedTuple
+from typing import Any, Callable, NamedTuple, Optional
 
 import jax
 
@@ -45,6 +45,8 @@ class Method(NamedTuple):
       family: the task family it learns on.
       init: ``rng -> State``.
       learn_task: ``(State, task) -> (State, TaskMetrics)``.
+      env_steps_per_iteration: env steps one iteration collects; None: one batch of ``config.ppo.num_trajectories``
+        episodes of T_max steps (``env_steps_per_iteration(method)`` resolves it).
     """
 
     name: str
@@ -52,3 +54,11 @@ class Method(NamedTuple):
     family: Any
     init: Callable[[jax.Array], Any]
     learn_task: Callable[[Any, Any], tuple[Any, TaskMetrics]]
+    env_steps_per_iteration: Optional[int] = None
+
+
+def env_steps_per_iteration(method: Method) -> int:
+    """Env steps one iteration of ``method`` collects (MAML+TL collects two batches per iteration)."""
+    if method.env_steps_per_iteration is not None:
+        return method.env_steps_per_iteration
+    return method.config.ppo.num_trajectories * method.family.max_steps

@@ -1,0 +1,189 @@
+"""MAML+TL: on-policy MAML (Finn et al. 2017, policy-gradient version) in online mode, meta-training only on the
+latest task; θ carries over to the next task (the paper's "Prior methods": MAML+TL).
+
+One iteration on task i:
+
+1. collect ``num_trajectories`` episodes with θ (the pre-update batch);
+2. inner step φ = θ + α ∇_θ J(θ), J the vanilla policy gradient −(−mean log π_θ(a|s) Â) with GAE advantages
+   from the value network (constants: the baseline), normalised like PPO's;
+3. collect ``num_trajectories`` episodes with φ (the post-update batch); the iteration's success rate is φ's:
+   it is what iterations-to-success counts;
+4. unless the threshold is reached, ``num_updates`` Adam steps (``minibatch_size`` samples of the post-update
+   batch each) on PPO's clipped surrogate of φ(θ) — φ recomputed from θ on the whole pre-update batch at every
+   step, so the gradient flows *through* the inner step (second order unless ``first_order``) — plus the value
+   loss on both batches.
+
+An iteration collects twice the env steps of a PPO iteration (``Method.env_steps_per_iteration``). The state's
+``params`` hold θ: the next task starts from it and the evaluations read it (docs/design.md, "MAML+TL").
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, ClassVar, NamedTuple, Optional
+
+import jax
+import jax.numpy as jnp
+import optax
+
+from jcomps import acting, networks, ppo
+from jcomps.envs.base import Family
+from jcomps.methods.base import Method, TaskMetrics
+from jcomps.numerics import all_finite, check_field, keep_if_finite, masked_mean
+from jcomps.progress import ProgressFn, with_fields
+
+
+@dataclasses.dataclass(frozen=True)
+class MAMLTLConfig:
+    """Configuration of MAML+TL. The outer update is PPO's (``ppo``: clipping, steps, minibatch, Adam learning
+    rate — the outer learning rate is ``ppo.learning_rate``, grid field ``learning_rate``)."""
+
+    ppo: ppo.PPOConfig = ppo.PPOConfig()
+    """Sampling (``num_trajectories`` per batch; two batches per iteration), advantages, and the outer update."""
+    inner_learning_rate: float = 0.1
+    """α, the inner policy-gradient step size (Finn et al. 2017: 0.1 on their navigation and locomotion tasks)."""
+    first_order: bool = False
+    """Stop the gradient through the inner step (first-order MAML)."""
+    reset_optimizer: bool = True
+    """Start each task with a fresh Adam state (θ is always carried over)."""
+
+    TRACED: ClassVar[frozenset] = frozenset({"inner_learning_rate"})
+    """Fields that may hold traced scalars (a hyperparameter-grid axis)."""
+
+    def __post_init__(self):
+        check_field(self.inner_learning_rate > 0, "inner_learning_rate", self.inner_learning_rate, "a number > 0")
+
+
+class MAMLTLState(NamedTuple):
+    """params: ActorCriticParams (policy θ, value); opt_state: Adam; rng; task_index: i32[]."""
+
+    params: networks.ActorCriticParams
+    opt_state: Any
+    rng: jax.Array
+    task_index: jax.Array
+
+
+def _flat(traj: acting.Trajectory, advantage, target) -> dict:
+    """The per-sample arrays of a batch, flattened to [T·B, ...]."""
+    batch = {"obs": traj.obs, "action": traj.action, "log_prob": traj.log_prob, "valid": traj.valid,
+             "advantage": advantage, "target": target}
+    return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), batch)
+
+
+def advantages(config: ppo.PPOConfig, params: networks.ActorCriticParams, traj: acting.Trajectory):
+    """GAE advantages and value targets f32[T, B] of ``traj`` under ``params``' value network (constants)."""
+    values = networks.value_of(params, traj.obs)
+    bootstrap = networks.value_of(params, traj.last_obs)
+    adv, target = ppo.gae(traj.reward * config.reward_scale, values, bootstrap, traj.done, config.discount,
+                          config.gae_lambda)
+    return jax.lax.stop_gradient((adv, target))
+
+
+def inner_step(config: MAMLTLConfig, policy: dict, pre: dict) -> dict:
+    """φ = θ + α ∇_θ J(θ), J(θ) = mean log π_θ(a|s) Â over the valid samples of the flat pre-update batch ``pre``
+    (advantages normalised if ``ppo.normalize_advantages``). Differentiable in ``policy`` (second order) unless
+    ``first_order``."""
+    mask = pre["valid"]
+    adv = pre["advantage"]
+    if config.ppo.normalize_advantages:
+        mean = masked_mean(adv, mask)
+        adv = (adv - mean) / (jnp.sqrt(masked_mean(jnp.square(adv - mean), mask)) + 1e-8)
+    adv = jax.lax.stop_gradient(adv)
+    objective = lambda p: masked_mean(networks.policy_log_prob(p, pre["obs"], pre["action"]) * adv, mask)  # noqa: E731
+    grads = jax.grad(objective)(policy)
+    if config.first_order:
+        grads = jax.lax.stop_gradient(grads)
+    return jax.tree.map(lambda p, g: p + config.inner_learning_rate * g, policy, grads)
+
+
+def outer_loss(config: MAMLTLConfig, params: networks.ActorCriticParams, pre: dict, post: dict):
+    """PPO's loss of the adapted policy φ(θ) on the (minibatch of the) post-update batch ``post``, plus the value
+    loss on ``pre`` (the same samples' share of the pre-update batch); returns (loss, (policy loss, value loss,
+    entropy, approx KL)). Its gradient in ``params.policy`` is the MAML meta-gradient."""
+    adapted = networks.ActorCriticParams(inner_step(config, params.policy, pre["full"]), params.value)
+    loss, (pl, vl, ent, kl) = ppo.ppo_loss(adapted, post, config.ppo)
+    pre_mb = pre["minibatch"]
+    pre_vl = 0.5 * masked_mean(jnp.square(networks.value_of(params, pre_mb["obs"]) - pre_mb["target"]),
+                               pre_mb["valid"])
+    return loss + config.ppo.value_coef * pre_vl, (pl, 0.5 * (vl + pre_vl), ent, kl)
+
+
+def make(family: Family, config: MAMLTLConfig = MAMLTLConfig(), progress_fn: Optional[ProgressFn] = None) -> Method:
+    pcfg = config.ppo
+    optimizer = ppo.make_optimizer(pcfg)
+    budget = pcfg.budget_for(family)
+    B = pcfg.num_trajectories
+
+    def init(rng: jax.Array) -> MAMLTLState:
+        rng, k = jax.random.split(rng)
+        params = ppo.init_params(pcfg, family, k)
+        return MAMLTLState(params, optimizer.init(params), rng, jnp.int32(0))
+
+    def update(params, opt_state, pre, pre_traj, post_traj, rng):
+        post = _flat(post_traj, *advantages(pcfg, params, post_traj))
+        n = post["valid"].shape[0]
+        minibatch = pcfg.minibatch_size or n
+        total = pcfg.num_updates * minibatch
+        perms = jax.vmap(lambda k: jax.random.permutation(k, n))(jax.random.split(rng, max(1, -(-total // n))))
+        indices = perms.reshape(-1)[:total].reshape(pcfg.num_updates, minibatch)
+        grad_fn = jax.value_and_grad(outer_loss, argnums=1, has_aux=True)
+
+        def step(carry, idx):
+            params, opt_state, bad = carry
+            take = lambda d: jax.tree.map(lambda x: x[idx], d)  # noqa: E731
+            (loss, terms), grads = grad_fn(config, params, {"full": pre, "minibatch": take(pre)}, take(post))
+            finite = all_finite((loss, grads))
+            updates, new_opt = optimizer.update(grads, opt_state, params)
+            params, opt_state = keep_if_finite(finite, (optax.apply_updates(params, updates), new_opt),
+                                               (params, opt_state))
+            return (params, opt_state, bad | ~finite), jnp.stack(terms)
+
+        (params, opt_state, bad), terms = jax.lax.scan(step, (params, opt_state, jnp.array(False)), indices)
+        if pcfg.normalize_observations:
+            obs = jnp.concatenate([pre_traj.obs, post_traj.obs], axis=1)
+            valid = jnp.concatenate([pre_traj.valid, post_traj.valid], axis=1)
+            norm = networks.obs_norm_update(params.policy["obs_norm"], obs, valid)
+            params = params._replace(policy={**params.policy, "obs_norm": norm})
+        return params, opt_state, jnp.mean(terms, axis=0), bad.astype(jnp.float32)
+
+    def learn_task(state: MAMLTLState, task) -> tuple[MAMLTLState, TaskMetrics]:
+        rng, k_task = jax.random.split(state.rng)
+        opt_state = optimizer.init(state.params) if config.reset_optimizer else state.opt_state
+        report = with_fields(progress_fn, task=state.task_index)
+        zeros = jnp.zeros((budget,), jnp.float32)
+        metrics0 = ppo.IterationMetrics(zeros, zeros, zeros, zeros, zeros, zeros, zeros, jnp.zeros((budget,), bool))
+
+        def cond(c):
+            return (~c[4]) & (c[3] < budget)
+
+        def body(c):
+            params, opt_state, key, it, _, metrics = c
+            key, k_pre, k_post, k_upd = jax.random.split(key, 4)
+            pre_traj = acting.rollout(family, params.policy, task, k_pre, B)
+            pre = _flat(pre_traj, *advantages(pcfg, params, pre_traj))
+            adapted = inner_step(config, params.policy, pre)
+            post_traj = acting.rollout(family, adapted, task, k_post, B)
+            success_rate = family.success_rate(post_traj.success)
+            mean_return = jnp.mean(jnp.sum(post_traj.reward, axis=0))
+            solved = success_rate >= family.success_threshold
+            if report is not None:
+                report({"iteration": it + 1, "success_rate": success_rate, "mean_return": mean_return})
+            rollout_finite = all_finite((pre_traj.obs, pre_traj.reward, post_traj.obs, post_traj.reward))
+
+            def skip(_):
+                return params, opt_state, jnp.zeros((4,), jnp.float32), jnp.float32(0.0)
+
+            new_params, new_opt, terms, bad = jax.lax.cond(
+                solved | ~rollout_finite, skip, lambda _: update(params, opt_state, pre, pre_traj, post_traj, k_upd), None)
+            bad = jnp.maximum(bad, 1.0 - rollout_finite.astype(jnp.float32))
+            row = ppo.IterationMetrics(mean_return, success_rate, terms[0], terms[1], terms[2], terms[3], bad,
+                                       jnp.array(True))
+            metrics = jax.tree.map(lambda m, v: m.at[it].set(v), metrics, row)
+            return new_params, new_opt, key, it + 1, solved, metrics
+
+        init_carry = (state.params, opt_state, k_task, jnp.int32(0), jnp.array(False), metrics0)
+        params, opt_state, _, it, solved, metrics = jax.lax.while_loop(cond, body, init_carry)
+        new = MAMLTLState(params, opt_state, rng, state.task_index + 1)
+        return new, TaskMetrics(it, solved, metrics)
+
+    return Method("maml_tl", config, family, init, learn_task, env_steps_per_iteration=2 * B * family.max_steps)

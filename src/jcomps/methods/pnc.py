@@ -1,0 +1,242 @@
+"""Progress & Compress (PNC; Schwarz et al. 2018) with PPO as the RL algorithm, as the CoMPS paper compares it.
+
+Two columns, both with hidden layers ``ppo.hidden_sizes`` (paper: [128, 128]):
+
+- the *knowledge base* (KB): a plain Gaussian policy, the consolidated one. ``state.params.policy`` is the KB, so
+  backward transfer, held-out adaptation and the next task's laterals all read it.
+- the *active column*: a policy whose layers i >= 2 receive layer-wise adaptors from the KB's hidden layer i − 1
+  (``networks.column_mean``), and a value network. It is re-initialised, adaptors included, at every new task
+  (``reset_active``; Schwarz et al. recommend it for diverse tasks, and their Atari ablation keeps transfer
+  only with it); the observation statistics are data and carry over.
+
+Per task, with budget N and C = ceil(``compress_fraction`` · N) compress iterations:
+
+- **progress**: PPO on the task in the active column (the KB frozen: it gets no gradient, and its parameters are
+  restored bit for bit after the step) until the success threshold or N − C iterations: iterations-to-success
+  counts this phase (N when the threshold is never reached);
+- **compress**: C iterations, each collecting ``ppo.num_trajectories`` episodes with the active column and making
+  ``ppo.num_updates`` Adam steps (learning rate ``distill_learning_rate``, minibatches of ``ppo.minibatch_size``
+  states) on E_s KL(π_active(·|s) ‖ π_KB(·|s)) + (λ/2) Σ γF*_{k−1} (θ_KB − θ*_{k−1})² (Schwarz et al., eq. 2);
+- then the online-EWC statistics: F_k, the diagonal Fisher of the KB policy on the last compress batch's states
+  (actions drawn from the KB), normalised by its largest entry; F*_k = γF*_{k−1} + F_k; anchor θ*_k = θ_KB.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import ClassVar, NamedTuple, Optional
+
+import jax
+import jax.numpy as jnp
+import optax
+
+from jcomps import acting, networks, ppo
+from jcomps.envs.base import Family
+from jcomps.methods.base import Method, TaskMetrics
+from jcomps.numerics import all_finite, check_field, keep_if_finite
+from jcomps.progress import ProgressFn, with_fields
+
+
+@dataclasses.dataclass(frozen=True)
+class PNCConfig:
+    """Configuration of Progress & Compress."""
+
+    ppo: ppo.PPOConfig = ppo.PPOConfig(hidden_sizes=(128, 128))
+    """The progress phase's PPO (hidden sizes of both columns); ``num_trajectories``, ``num_updates`` and
+    ``minibatch_size`` also shape the compress phase."""
+    compress_fraction: float = 0.05
+    """Share of the task's budget spent on the compress phase (paper: the last 5%)."""
+    distill_learning_rate: float = 1e-3
+    """Adam learning rate of the knowledge base during the compress phase."""
+    ewc_lambda: float = 25.0
+    """λ, weight of the online-EWC penalty (Schwarz et al. searched 25, 75, 125, 175 in their RL experiments)."""
+    ewc_gamma: float = 0.99
+    """γ, decay of the running Fisher F* (Schwarz et al.'s choice on Omniglot; γ < 1)."""
+    fisher_states: int = 1024
+    """States (of the last compress batch) that estimate the diagonal Fisher of the knowledge base."""
+    reset_active: bool = True
+    """Re-initialise the active column and its adaptors at every new task (Schwarz et al.'s recommendation)."""
+
+    TRACED: ClassVar[frozenset] = frozenset({"distill_learning_rate", "ewc_lambda", "ewc_gamma"})
+    """Fields that may hold traced scalars (a hyperparameter-grid axis)."""
+
+    def __post_init__(self):
+        check_field(0 < self.compress_fraction < 1, "compress_fraction", self.compress_fraction,
+                    "a number in (0, 1)")
+        check_field(self.distill_learning_rate > 0, "distill_learning_rate", self.distill_learning_rate,
+                    "a number > 0")
+        check_field(self.ewc_lambda >= 0, "ewc_lambda", self.ewc_lambda, "a number >= 0")
+        check_field(0 <= self.ewc_gamma <= 1, "ewc_gamma", self.ewc_gamma, "a number in [0, 1]")
+        check_field(self.fisher_states >= 1, "fisher_states", self.fisher_states, "an integer >= 1")
+
+
+class PNCState(NamedTuple):
+    """params: ActorCriticParams (policy: the knowledge base; value: the active column's value network);
+    active: the active column's policy (layers, log-std, observation statistics, adaptors; no ``kb`` entry);
+    fisher: F*, the running Fisher over the KB's trainable leaves; anchor: θ*_{k−1}; rng; task_index: i32[]."""
+
+    params: networks.ActorCriticParams
+    active: dict
+    fisher: dict
+    anchor: dict
+    rng: jax.Array
+    task_index: jax.Array
+
+
+def compress_iterations(config: PNCConfig, budget: int) -> int:
+    """C = ceil(compress_fraction · budget), at least 1 and at most budget − 1."""
+    return min(max(1, math.ceil(config.compress_fraction * budget)), budget - 1)
+
+
+def trainable(policy: dict) -> dict:
+    """The leaves of a plain policy that learn (the mean MLP and the log-std; not the observation statistics)."""
+    return {"mean": policy["mean"], "log_std": policy["log_std"]}
+
+
+def init_active(config: PNCConfig, family: Family, rng: jax.Array, obs_norm) -> tuple[dict, list]:
+    """A fresh active column (policy with adaptors, value network) keeping the observation statistics."""
+    k_ac, k_ad = jax.random.split(rng)
+    fresh = ppo.init_params(config.ppo, family, k_ac)
+    sizes = (family.obs_size, *config.ppo.hidden_sizes, family.action_size)
+    policy = {**fresh.policy, "obs_norm": obs_norm, "adaptors": networks.adaptors_init(k_ad, sizes)}
+    return policy, fresh.value
+
+
+def with_kb(active: dict, kb: dict) -> dict:
+    """The active column's policy as it acts: its own parameters with the knowledge base attached."""
+    return {**active, "kb": kb}
+
+
+def gaussian_kl(mean_p, log_std_p, mean_q, log_std_q):
+    """KL(N(mean_p, σ_p²) ‖ N(mean_q, σ_q²)) summed over the last (action) axis."""
+    var_p, var_q = jnp.exp(2 * log_std_p), jnp.exp(2 * log_std_q)
+    return jnp.sum(log_std_q - log_std_p + (var_p + jnp.square(mean_p - mean_q)) / (2 * var_q) - 0.5, axis=-1)
+
+
+def ewc_penalty(config: PNCConfig, kb_trainable: dict, anchor: dict, fisher: dict):
+    """(λ/2) Σ γF* (θ − θ*)²: zero at the anchor, growing with the distance, weighted by the Fisher."""
+    terms = jax.tree.map(lambda p, a, f: jnp.sum(config.ewc_gamma * f * jnp.square(p - a)), kb_trainable, anchor,
+                         fisher)
+    return 0.5 * config.ewc_lambda * sum(jax.tree.leaves(terms))
+
+
+def distill_loss(config: PNCConfig, kb_trainable: dict, kb: dict, teacher_mean, teacher_log_std, obs, valid,
+                 anchor: dict, fisher: dict):
+    """Mean KL(π_active ‖ π_KB) over the valid states ``obs`` (the teacher's mean and log-std are constants) plus
+    the online-EWC penalty; returns (loss, KL)."""
+    student = {**kb, **kb_trainable}
+    mean, log_std = networks.policy_dist(student, obs)
+    kl = gaussian_kl(jax.lax.stop_gradient(teacher_mean), jax.lax.stop_gradient(teacher_log_std), mean, log_std)
+    kl = jnp.sum(kl * valid) / jnp.maximum(jnp.sum(valid), 1.0)
+    return kl + ewc_penalty(config, kb_trainable, anchor, fisher), kl
+
+
+def diagonal_fisher(kb: dict, obs: jax.Array, valid: jax.Array, rng: jax.Array) -> dict:
+    """E_s E_{a~π_KB(·|s)} (∇ log π_KB(a|s))² over the trainable leaves, on the valid rows of ``obs`` f32[n, obs],
+    normalised by its largest entry (Schwarz et al. normalise each task's Fisher)."""
+    mean, log_std = networks.policy_dist(kb, obs)
+    actions = mean + jnp.exp(log_std) * jax.random.normal(rng, mean.shape)
+    actions = jax.lax.stop_gradient(actions)
+
+    def score(o, a):
+        return jax.grad(lambda t: networks.policy_log_prob({**kb, **t}, o, a))(trainable(kb))
+
+    grads = jax.vmap(score)(obs, actions)
+    w = valid / jnp.maximum(jnp.sum(valid), 1.0)
+    fisher = jax.tree.map(lambda g: jnp.tensordot(w, jnp.square(g), axes=1), grads)
+    top = jnp.max(jnp.stack([jnp.max(f) for f in jax.tree.leaves(fisher)]))
+    return jax.tree.map(lambda f: f / jnp.maximum(top, 1e-12), fisher)
+
+
+def compress(config: PNCConfig, family: Family, kb: dict, active: dict, task, fisher: dict, anchor: dict,
+             rng: jax.Array, iterations: int, progress_fn: Optional[ProgressFn] = None):
+    """The compress phase: ``iterations`` on-policy batches from the active column, each followed by
+    ``num_updates`` Adam steps distilling it into the knowledge base under the EWC penalty; then the online-EWC
+    update. Returns (kb, fisher F*_k, anchor θ*_k, mean KL f32[iterations] before each batch's steps)."""
+    pcfg = config.ppo
+    optimizer = optax.adam(config.distill_learning_rate)
+    acting_policy = with_kb(active, kb)  # the teacher, fixed through the phase (its laterals read this KB)
+    grad_fn = jax.value_and_grad(distill_loss, argnums=1, has_aux=True)
+    kb = {**kb, "obs_norm": active["obs_norm"]}  # the statistics describe the data; the KB reads them too
+
+    def batch(key):
+        traj = acting.rollout(family, acting_policy, task, key, pcfg.num_trajectories)
+        obs = traj.obs.reshape((-1, traj.obs.shape[-1]))
+        mean, log_std = networks.policy_dist(acting_policy, obs)
+        return obs, traj.valid.reshape(-1), mean, log_std
+
+    def one_iteration(carry, xs):
+        theta, opt_state = carry
+        key, it = xs
+        k_roll, k_perm = jax.random.split(key)
+        obs, valid, t_mean, t_log_std = batch(k_roll)
+        n = obs.shape[0]
+        minibatch = pcfg.minibatch_size or n
+        total = pcfg.num_updates * minibatch
+        perms = jax.vmap(lambda k: jax.random.permutation(k, n))(jax.random.split(k_perm, max(1, -(-total // n))))
+        indices = perms.reshape(-1)[:total].reshape(pcfg.num_updates, minibatch)
+
+        def step(carry, idx):
+            theta, opt_state = carry
+            (loss, kl), g = grad_fn(config, theta, kb, t_mean[idx], t_log_std, obs[idx], valid[idx], anchor, fisher)
+            up, new_opt = optimizer.update(g, opt_state, theta)
+            carry = keep_if_finite(all_finite((loss, g)), (optax.apply_updates(theta, up), new_opt), carry)
+            return carry, kl
+
+        (theta, opt_state), kls = jax.lax.scan(step, (theta, opt_state), indices)
+        if progress_fn is not None:
+            progress_fn({"compress_iteration": it + 1, "compress_iterations": jnp.int32(iterations),
+                         "kl": kls[0]})
+        return (theta, opt_state), (kls[0], obs, valid)
+
+    theta0 = trainable(kb)
+    keys = jax.random.split(rng, iterations + 1)
+    (theta, _), (kls, obs, valid) = jax.lax.scan(one_iteration, (theta0, optimizer.init(theta0)),
+                                                 (keys[:-1], jnp.arange(iterations, dtype=jnp.int32)))
+    kb = {**kb, **theta}
+    last_obs, last_valid = obs[-1], valid[-1]
+    n = min(config.fisher_states, last_obs.shape[0])
+    pick = jax.random.choice(keys[-1], last_obs.shape[0], (n,), replace=False)
+    new_fisher = diagonal_fisher(kb, last_obs[pick], last_valid[pick], jax.random.fold_in(keys[-1], 1))
+    fisher = jax.tree.map(lambda old, f: config.ewc_gamma * old + f, fisher, new_fisher)
+    return kb, fisher, trainable(kb), kls
+
+
+def make(family: Family, config: PNCConfig = PNCConfig(), progress_fn: Optional[ProgressFn] = None) -> Method:
+    pcfg = config.ppo
+    budget = pcfg.budget_for(family)
+    check_field(budget >= 2, "ppo.budget", budget, "an integer >= 2 for pnc (progress and compress iterations)")
+    n_compress = compress_iterations(config, budget)
+    n_progress = budget - n_compress
+    optimizer = ppo.make_optimizer(pcfg)
+
+    def init(rng: jax.Array) -> PNCState:
+        rng, k_kb, k_active = jax.random.split(rng, 3)
+        kb = ppo.init_params(pcfg, family, k_kb).policy
+        active, value = init_active(config, family, k_active, kb["obs_norm"])
+        zeros = jax.tree.map(jnp.zeros_like, trainable(kb))
+        return PNCState(networks.ActorCriticParams(kb, value), active, zeros, trainable(kb), rng, jnp.int32(0))
+
+    def learn_task(state: PNCState, task) -> tuple[PNCState, TaskMetrics]:
+        rng, k_reset, k_rl, k_compress = jax.random.split(state.rng, 4)
+        kb = state.params.policy
+        if config.reset_active:
+            active, value = init_active(config, family, k_reset, state.active["obs_norm"])
+        else:
+            active, value = state.active, state.params.value
+        params = networks.ActorCriticParams(with_kb(active, kb), value)
+        report = with_fields(progress_fn, task=state.task_index)
+        out = ppo.rl_step(pcfg, family, params, optimizer.init(params), task, k_rl, progress_fn=report,
+                          budget=n_progress)
+        active = {k: v for k, v in out.params.policy.items() if k != "kb"}  # the KB is frozen: keep it exactly
+        kb, fisher, anchor, _ = compress(config, family, kb, active, task, state.fisher, state.anchor, k_compress,
+                                         n_compress, progress_fn=report)
+        pad = lambda x: jnp.concatenate([x, jnp.zeros((n_compress,), x.dtype)])  # noqa: E731
+        metrics = jax.tree.map(pad, out.metrics)
+        iterations = jnp.where(out.solved, out.iterations, budget)
+        new = PNCState(networks.ActorCriticParams(kb, out.params.value), active, fisher, anchor, rng,
+                       state.task_index + 1)
+        return new, TaskMetrics(iterations, out.solved, metrics)
+
+    return Method("pnc", config, family, init, learn_task)

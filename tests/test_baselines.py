@@ -1,0 +1,196 @@
+"""Laws of the paper's other continual baselines: MAML+TL (the meta-gradient through the inner step) and
+Progress & Compress (frozen knowledge base, EWC penalty, distillation, lateral gradients)."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jcomps import envs, methods, networks, ppo
+from jcomps.methods import maml_tl, pnc
+
+OBS, ACT, N = 3, 2, 12
+TINY_PPO = ppo.PPOConfig(num_trajectories=2, num_updates=2, minibatch_size=16, hidden_sizes=(8, 8), budget=4)
+
+
+def _batch(rng, policy, dtype):
+    """A flat batch of N samples whose behaviour log-probabilities sit near π's (ratios well inside the clip)."""
+    f = lambda *s: jnp.asarray(rng.normal(size=s), dtype)  # noqa: E731
+    obs, action = f(N, OBS), f(N, ACT)
+    log_prob = networks.policy_log_prob(policy, obs, action) + 0.01 * f(N)
+    return {"obs": obs, "action": action, "log_prob": log_prob, "valid": jnp.ones((N,), dtype),
+            "advantage": f(N), "target": f(N)}
+
+
+def _maml_setup(dtype, first_order=False):
+    config = maml_tl.MAMLTLConfig(ppo=dataclasses.replace(TINY_PPO, hidden_sizes=(5,)), inner_learning_rate=0.5,
+                                  first_order=first_order)
+    params = networks.init_actor_critic(jax.random.PRNGKey(0), OBS, ACT, (5,), 0.5)
+    params = jax.tree.map(lambda x: x.astype(dtype), params)
+    params = params._replace(policy={**params.policy, "mean": [
+        {"w": layer["w"] + 0.3 * jax.random.normal(jax.random.PRNGKey(i), layer["w"].shape, dtype), "b": layer["b"]}
+        for i, layer in enumerate(params.policy["mean"])]})
+    rng = np.random.default_rng(1)
+    pre = _batch(rng, params.policy, dtype)
+    adapted = maml_tl.inner_step(config, params.policy, pre)
+    post = _batch(rng, adapted, dtype)
+    return config, params, {"full": pre, "minibatch": pre}, post
+
+
+@pytest.mark.parametrize("first_order", [False, True])
+def test_maml_meta_gradient_matches_finite_differences(first_order):
+    with jax.enable_x64(True):
+        config, params, pre, post = _maml_setup(jnp.float64)
+        loss = lambda p: maml_tl.outer_loss(config, p, pre, post)[0]  # noqa: E731
+        fo_config = dataclasses.replace(config, first_order=first_order)
+        grad = jax.grad(lambda p: maml_tl.outer_loss(fo_config, p, pre, post)[0])(params)
+        rng = np.random.default_rng(3)
+        direction = jax.tree.map(lambda x: jnp.asarray(rng.normal(size=x.shape)), params)
+        # The observation statistics are data, not parameters (no gradient by design): hold them fixed.
+        direction.policy["obs_norm"] = jax.tree.map(jnp.zeros_like, direction.policy["obs_norm"])
+        eps = 1e-6
+        shift = lambda s: jax.tree.map(lambda p, d: p + s * eps * d, params, direction)  # noqa: E731
+        numeric = (loss(shift(1.0)) - loss(shift(-1.0))) / (2 * eps)
+        analytic = sum(jnp.vdot(g, d) for g, d in zip(jax.tree.leaves(grad), jax.tree.leaves(direction)))
+        if first_order:  # the first-order gradient drops the inner step's curvature: it must not match
+            assert abs(float(analytic) - float(numeric)) > 1e-3 * abs(float(numeric))
+        else:
+            np.testing.assert_allclose(float(analytic), float(numeric), rtol=1e-6)
+
+
+def test_maml_second_order_differs_from_first_order():
+    grads = []
+    for first_order in (False, True):
+        config, params, pre, post = _maml_setup(jnp.float32, first_order)
+        grads.append(jax.grad(lambda p: maml_tl.outer_loss(config, p, pre, post)[0])(params).policy["mean"])
+    diff = max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(*map(jax.tree.leaves, grads)))
+    assert diff > 1e-4
+
+
+def test_maml_inner_step_is_a_policy_gradient_ascent_step():
+    config, params, pre, _ = _maml_setup(jnp.float32)
+    full = pre["full"]
+    adv = (full["advantage"] - full["advantage"].mean()) / (full["advantage"].std() + 1e-8)
+    objective = lambda p: jnp.mean(networks.policy_log_prob(p, full["obs"], full["action"]) * adv)  # noqa: E731
+    adapted = maml_tl.inner_step(config, params.policy, full)
+    g = jax.grad(objective)(params.policy)
+    expected = jax.tree.map(lambda p, d: p + config.inner_learning_rate * d, params.policy, g)
+    for a, b in zip(jax.tree.leaves(adapted), jax.tree.leaves(expected)):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+    assert float(objective(adapted)) > float(objective(params.policy))  # a small ascent step raises J
+
+
+# --- Progress & Compress ---
+
+def _pnc_policies(seed=0):
+    family = envs.make("point_goal")
+    config = pnc.PNCConfig(ppo=TINY_PPO)
+    kb = ppo.init_params(config.ppo, family, jax.random.PRNGKey(seed)).policy
+    active, value = pnc.init_active(config, family, jax.random.PRNGKey(seed + 1), kb["obs_norm"])
+    return family, config, kb, active, value
+
+
+def test_lateral_connections_carry_gradient_into_the_active_column_only():
+    family, _, kb, active, _ = _pnc_policies()
+    obs = jax.random.normal(jax.random.PRNGKey(2), (7, family.obs_size))
+    action = jax.random.normal(jax.random.PRNGKey(3), (7, family.action_size))
+    grads = jax.grad(lambda p: jnp.sum(networks.policy_log_prob(p, obs, action)))(pnc.with_kb(active, kb))
+    assert all(float(jnp.max(jnp.abs(g))) == 0.0 for g in jax.tree.leaves(grads["kb"]))
+    assert all(float(jnp.max(jnp.abs(g))) > 0.0 for g in jax.tree.leaves(grads["adaptors"]))
+    assert all(float(jnp.max(jnp.abs(g))) > 0.0 for g in jax.tree.leaves(grads["mean"]))
+    # ... while the knowledge base does shape the active column's output through them.
+    other_kb = ppo.init_params(TINY_PPO, family, jax.random.PRNGKey(9)).policy
+    a = networks.policy_dist(pnc.with_kb(active, kb), obs)[0]
+    b = networks.policy_dist(pnc.with_kb(active, other_kb), obs)[0]
+    assert float(jnp.max(jnp.abs(a - b))) > 1e-4
+
+
+def test_knowledge_base_is_unchanged_by_the_progress_phase():
+    family, config, kb, active, value = _pnc_policies()
+    params = networks.ActorCriticParams(pnc.with_kb(active, kb), value)
+    optimizer = ppo.make_optimizer(config.ppo)
+    out = jax.jit(lambda p, o: ppo.rl_step(config.ppo, family, p, o, envs.task_at(family, 0),
+                                           jax.random.PRNGKey(4), stop_at_threshold=False))(params, optimizer.init(params))
+    for before, after in zip(jax.tree.leaves(kb), jax.tree.leaves(out.params.policy["kb"])):
+        np.testing.assert_array_equal(before, after)
+    moved = [float(jnp.max(jnp.abs(x - y))) for x, y in zip(jax.tree.leaves(active["adaptors"]),
+                                                            jax.tree.leaves(out.params.policy["adaptors"]))]
+    assert max(moved) > 0.0  # the adaptors learn
+
+
+def test_ewc_penalty_is_zero_at_the_anchor_and_grows_with_fisher_weighted_distance():
+    _, config, kb, _, _ = _pnc_policies()
+    anchor = pnc.trainable(kb)
+    fisher = jax.tree.map(lambda x: jnp.abs(jax.random.normal(jax.random.PRNGKey(5), x.shape)), anchor)
+    direction = jax.tree.map(lambda x: jax.random.normal(jax.random.PRNGKey(6), x.shape), anchor)
+    at = lambda t, f=fisher: float(pnc.ewc_penalty(config, jax.tree.map(  # noqa: E731
+        lambda a, d: a + t * d, anchor, direction), anchor, f))
+    assert at(0.0) == 0.0
+    assert 0.0 < at(0.1) < at(0.2) < at(0.4)
+    np.testing.assert_allclose(at(0.2), 4 * at(0.1), rtol=1e-4)  # quadratic in the distance
+    expected = 0.5 * config.ewc_lambda * config.ewc_gamma * 0.01 * sum(
+        float(jnp.sum(f * d * d)) for f, d in zip(jax.tree.leaves(fisher), jax.tree.leaves(direction)))
+    np.testing.assert_allclose(at(0.1), expected, rtol=1e-4)
+    # Weighted by the Fisher: where the Fisher is zero, moving costs nothing.
+    zero = jax.tree.map(jnp.zeros_like, fisher)
+    assert at(0.4, zero) == 0.0
+    doubled = jax.tree.map(lambda f: 2 * f, fisher)
+    np.testing.assert_allclose(at(0.1, doubled), 2 * at(0.1), rtol=1e-5)
+
+
+def test_distillation_lowers_the_kl_and_updates_the_online_fisher():
+    family, config, kb, active, _ = _pnc_policies()
+    config = dataclasses.replace(config, ppo=dataclasses.replace(config.ppo, num_updates=20), ewc_lambda=0.0)
+    task = envs.task_at(family, 0)
+    fisher0 = jax.tree.map(lambda x: jnp.full(x.shape, 0.5, x.dtype), pnc.trainable(kb))
+    run = jax.jit(lambda kb, active: pnc.compress(config, family, kb, active, task, fisher0, pnc.trainable(kb),
+                                                  jax.random.PRNGKey(7), 4))
+    new_kb, fisher, anchor, kls = run(kb, active)
+    kls = np.asarray(kls)
+    assert kls[-1] < 0.5 * kls[0], kls
+    # The anchor is the new knowledge base; F* = γ F*_old + F_k with F_k normalised to a largest entry of 1.
+    for a, b in zip(jax.tree.leaves(anchor), jax.tree.leaves(pnc.trainable(new_kb))):
+        np.testing.assert_array_equal(a, b)
+    new_part = jax.tree.map(lambda f: f - config.ewc_gamma * 0.5, fisher)
+    top = max(float(jnp.max(f)) for f in jax.tree.leaves(new_part))
+    np.testing.assert_allclose(top, 1.0, rtol=1e-5)
+    assert min(float(jnp.min(f)) for f in jax.tree.leaves(new_part)) >= -1e-6
+
+
+def test_gaussian_kl_is_zero_for_equal_policies_and_positive_otherwise():
+    m = jnp.array([[0.3, -0.2]])
+    s = jnp.array([-0.5, 0.1])
+    assert float(pnc.gaussian_kl(m, s, m, s)[0]) == pytest.approx(0.0, abs=1e-7)
+    assert float(pnc.gaussian_kl(m + 0.1, s, m, s)[0]) > 0.0
+    # KL(N(0,1) || N(0, e^2)) per dimension: log e - 1/2 + 1/(2 e^2)
+    kl = pnc.gaussian_kl(jnp.zeros((1, 1)), jnp.zeros(1), jnp.zeros((1, 1)), jnp.ones(1))
+    np.testing.assert_allclose(float(kl[0]), 1.0 - 0.5 + 0.5 * np.exp(-2.0), rtol=1e-6)
+
+
+@pytest.mark.parametrize("name", ["maml_tl", "pnc"])
+def test_learn_task_reports_the_shared_metrics(name):
+    family = envs.make("point_goal")
+    base = methods.default_config(name, family)
+    method = methods.make(name, family, dataclasses.replace(base, ppo=TINY_PPO))
+    state = method.init(jax.random.PRNGKey(0))
+    state2, metrics = jax.jit(method.learn_task)(state, envs.task_at(family, 0))
+    assert metrics.per_iteration.valid.shape == (4,)
+    assert 1 <= int(metrics.iterations) <= 4 and int(state2.task_index) == 1
+    assert jax.tree.structure(state2) == jax.tree.structure(state)
+    steps = methods.base.env_steps_per_iteration(method)
+    assert steps == (2 if name == "maml_tl" else 1) * TINY_PPO.num_trajectories * family.max_steps
+
+
+@pytest.mark.parametrize("field,value", [("inner_learning_rate", 0.0)])
+def test_bad_maml_config_names_the_field(field, value):
+    with pytest.raises(ValueError, match=field):
+        maml_tl.MAMLTLConfig(**{field: value})
+
+
+@pytest.mark.parametrize("field,value", [("compress_fraction", 1.0), ("ewc_lambda", -1.0), ("ewc_gamma", 1.5),
+                                         ("distill_learning_rate", 0.0)])
+def test_bad_pnc_config_names_the_field(field, value):
+    with pytest.raises(ValueError, match=field):
+        pnc.PNCConfig(**{field: value})
