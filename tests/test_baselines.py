@@ -2,13 +2,15 @@
 Progress & Compress (frozen knowledge base, EWC penalty, distillation, lateral gradients)."""
 
 import dataclasses
+import json
+import os
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jcomps import envs, methods, networks, ppo
+from jcomps import envs, experiment, methods, networks, ppo
 from jcomps.methods import maml_tl, pnc
 
 OBS, ACT, N = 3, 2, 12
@@ -43,9 +45,9 @@ def _maml_setup(dtype, first_order=False):
 def test_maml_meta_gradient_matches_finite_differences(first_order):
     with jax.enable_x64(True):
         config, params, pre, post = _maml_setup(jnp.float64)
-        loss = lambda p: maml_tl.outer_loss(config, p, pre, post)[0]  # noqa: E731
+        loss = jax.jit(lambda p: maml_tl.outer_loss(config, p, pre, post)[0])
         fo_config = dataclasses.replace(config, first_order=first_order)
-        grad = jax.grad(lambda p: maml_tl.outer_loss(fo_config, p, pre, post)[0])(params)
+        grad = jax.jit(jax.grad(lambda p: maml_tl.outer_loss(fo_config, p, pre, post)[0]))(params)
         rng = np.random.default_rng(3)
         direction = jax.tree.map(lambda x: jnp.asarray(rng.normal(size=x.shape)), params)
         # The observation statistics are data, not parameters (no gradient by design): hold them fixed.
@@ -64,7 +66,7 @@ def test_maml_second_order_differs_from_first_order():
     grads = []
     for first_order in (False, True):
         config, params, pre, post = _maml_setup(jnp.float32, first_order)
-        grads.append(jax.grad(lambda p: maml_tl.outer_loss(config, p, pre, post)[0])(params).policy["mean"])
+        grads.append(jax.jit(jax.grad(lambda p: maml_tl.outer_loss(config, p, pre, post)[0]))(params).policy["mean"])
     diff = max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(*map(jax.tree.leaves, grads)))
     assert diff > 1e-4
 
@@ -194,3 +196,47 @@ def test_bad_maml_config_names_the_field(field, value):
 def test_bad_pnc_config_names_the_field(field, value):
     with pytest.raises(ValueError, match=field):
         pnc.PNCConfig(**{field: value})
+
+
+# --- through the runner: CLI, chunks, checkpoints, exact resume, results ---
+
+TINY_RUN = ["--methods", "maml_tl", "pnc", "--num-tasks", "3", "--seeds", "2", "--chunk-tasks", "1", "--budget", "3",
+            "--num-trajectories", "2", "--hidden-sizes", "8", "8", "--num-updates", "1", "--minibatch-size", "16",
+            "--heldout-iterations", "1", "--heldout-budget", "2", "--backward-tasks", "1"]
+
+
+@pytest.fixture(scope="module")
+def baselines_run(runner, tmp_path_factory):
+    out = tmp_path_factory.mktemp("baselines") / "full"
+    runner.main(TINY_RUN + ["--out", str(out)])
+    return out
+
+
+def test_baselines_run_end_to_end_with_samples_to_success(baselines_run):
+    results = json.loads((baselines_run / "results.json").read_text())
+    assert list(results["methods"]) == ["maml_tl", "pnc"]
+    for name, factor in (("maml_tl", 2), ("pnc", 1)):
+        m = results["methods"][name]
+        assert np.asarray(m["iterations_to_success"]).shape == (2, 3)
+        assert m["env_steps_per_iteration"] == factor * 2 * 100
+        assert np.asarray(m["backward_transfer"], dtype=object).shape == (2, 3)
+        assert m["nonfinite_iterations"] == 0
+    assert "significance" not in results  # no comps in the run: no default baseline
+    assert (baselines_run / "plots" / "samples_to_success.png").stat().st_size > 1000
+
+
+def test_killed_and_resumed_baselines_equal_the_uninterrupted_run(runner, baselines_run, tmp_path):
+    out = tmp_path / "killed"
+    args = runner.parse_args(TINY_RUN + ["--out", str(out)])
+    experiment.open_run_dir(str(out), experiment.describe(args.run, args.eval, args.configs), resume=False)
+    for name in ("maml_tl", "pnc"):  # "killed" after the first chunk of each
+        assert experiment.run_method(str(out), name, args.run, args.eval, args.configs[name], resume=False,
+                                     programs=runner.PROGRAMS, stop_after_chunks=1) is None
+        assert sorted(os.listdir(out / "checkpoints" / name)) == ["1"]
+    runner.main(["--out", str(out), "--resume"])
+    for name in ("maml_tl", "pnc"):
+        with np.load(baselines_run / "raw" / f"{name}.npz") as fa, np.load(out / "raw" / f"{name}.npz") as fb:
+            assert fa.files == fb.files
+            for key in fa.files:
+                if key != "seconds":
+                    np.testing.assert_array_equal(fa[key], fb[key], err_msg=f"{name} {key}")

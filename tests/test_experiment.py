@@ -58,9 +58,12 @@ def test_results_schema(full_run):
         assert [q["tasks"] for q in m["iqm"]] == [[1, 1], [2, 3]]
         assert all(q["ci"][0] <= q["iqm"] <= q["ci"][1] for q in m["iqm"])
         assert m["devices"] == 2 and m["nonfinite_iterations"] == 0
+        # Samples-to-success: 2 episodes of Point Goal's 100 steps per iteration.
+        assert m["env_steps_per_iteration"] == 200
+        np.testing.assert_allclose(m["env_steps_to_success_mean"], np.asarray(m["iterations_to_success_mean"]) * 200)
     sig = results["significance"]["against"]["ppo_tl"]
     assert sig["bootstrap_samples"] == 30_000 and set(sig) >= {"p_ttest", "p_bootstrap", "t"}
-    for plot in ("iterations_to_success", "lifelong_return", "per_task_return", "backward_transfer",
+    for plot in ("iterations_to_success", "samples_to_success", "lifelong_return", "per_task_return", "backward_transfer",
                  "heldout_meta_test"):
         assert (full_run / "plots" / f"{plot}.png").stat().st_size > 1000
     table = (full_run / "significance.md").read_text()

@@ -127,7 +127,7 @@ def test_progress_behind_is_the_member_still_iterating(console):
     assert "behind: ppo[learning_rate=0.0001] seed 0 (task 1)" in lines[-1]
 
 
-@pytest.mark.parametrize("name", ["ppo_tl", "comps"])
+@pytest.mark.parametrize("name", ["ppo_tl", "comps", "maml_tl", "pnc"])
 def test_every_traced_field_traces(name):
     """Every field a config declares TRACED can be a traced grid axis of the chunk and held-out programs (traced
     only, not compiled)."""

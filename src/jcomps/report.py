@@ -36,7 +36,7 @@ from typing import Optional
 
 import numpy as np
 
-from jcomps import experiment, methods
+from jcomps import cli, envs, experiment, methods
 from jcomps import results as results_
 from jcomps import grid as grids
 
@@ -171,6 +171,15 @@ def default_baseline(methods_run) -> Optional[str]:
     return "comps" if "comps" in methods_run else None
 
 
+def env_steps_per_iteration(description: dict, method: str, values: Optional[dict]) -> int:
+    """Env steps one iteration of ``method`` collects in the run ``description`` (at grid point ``values``)."""
+    family = envs.make(description["run"]["family"])
+    config = cli.config_from_dict(methods.default_config(method, family), description["methods"][method])
+    for field, value in (values or {}).items():
+        config = grids.replace_flat(config, field, value)
+    return methods.env_steps_per_iteration(method, family, config)
+
+
 def summarize(description: dict, raws: dict, baseline: Optional[str] = None) -> dict:
     """The content of ``results.json`` (``raws``: {entry key: RawResults}); the significance table compares
     ``baseline`` (a method of the run; default ``default_baseline``) with every other method."""
@@ -188,10 +197,15 @@ def summarize(description: dict, raws: dict, baseline: Optional[str] = None) -> 
         mean, se = _mean_se(its)
         bt = backward_transfer(raw)
         h_ret = raw.heldout.mean_return.mean(axis=2)  # [seeds, points, iterations + 1], averaged over tasks
+        steps = env_steps_per_iteration(description, method, values)
         entry = results["methods"][name] = {
             "iterations_to_success": its.astype(int).tolist(),
             "iterations_to_success_mean": mean.round(3).tolist(),
             "iterations_to_success_se": se.round(3).tolist(),
+            # Samples-to-success: MAML+TL's iterations collect two batches, PPO's one.
+            "env_steps_per_iteration": int(steps),
+            "env_steps_to_success_mean": (mean * steps).round(1).tolist(),
+            "env_steps_to_success_se": (se * steps).round(1).tolist(),
             "solved": raw.task.solved.astype(bool).tolist(),
             "mean_return_per_task": per_task_return.round(6).tolist(),
             "return_curves": _curves(ret, valid),
@@ -280,6 +294,14 @@ def _plots(results: dict, raws: dict, directory: str) -> list[str]:
     integer_ticks(ax)
     ax.legend()
     save(fig, "iterations_to_success.png")
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for name, m in methods_.items():
+        band(ax, tasks, np.asarray(m["iterations_to_success"]) * m["env_steps_per_iteration"], name)
+    ax.set(xlabel="task", ylabel="env steps to success", title=f"Samples to success ({title})")
+    integer_ticks(ax)
+    ax.legend()
+    save(fig, "samples_to_success.png")
 
     fig, ax = plt.subplots(figsize=(7, 4))
     for k, (name, raw) in enumerate(raws.items()):

@@ -100,4 +100,12 @@ def make(name: str, family: Family, config=None, progress_fn: Optional[ProgressF
     return REGISTRY[name].make(family, config, progress_fn)
 
 
-__all__ = ["METHODS", "Method", "REGISTRY", "Registered", "TaskMetrics", "config_class", "default_config", "make"]
+def env_steps_per_iteration(name: str, family: Family, config=None) -> int:
+    """Env steps one iteration of method ``name`` collects with ``config`` (default: its default config)."""
+    from jcomps.methods import base  # noqa: PLC0415 - the function of the same name there
+
+    return base.env_steps_per_iteration(make(name, family, config))
+
+
+__all__ = ["METHODS", "Method", "REGISTRY", "Registered", "TaskMetrics", "config_class", "default_config", "env_steps_per_iteration",
+           "make"]
