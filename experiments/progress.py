@@ -47,6 +47,14 @@ class Progress:
                                 f"{int(steps)} bc loss {float(np.nanmean(self.meta_loss)):.3f}{self._behind()} | "
                                 f"elapsed {_clock(time.time() - self.start)} remaining {self._remaining_text()}")
 
+    def record_compress(self, member: int, task: int, step: int, steps: int, kl: float):
+        """After every iteration of a compress phase (``pnc``: distilling the active column into the knowledge
+        base, after the task's progress phase)."""
+        self.meta_loss[member] = float(kl)
+        self._throttled(lambda: f"[{self.name}] task {task + 1}/{self.num_tasks} compress iteration {int(step)}/"
+                                f"{int(steps)} kl {float(np.nanmean(self.meta_loss)):.4f}{self._behind()} | "
+                                f"elapsed {_clock(time.time() - self.start)} remaining {self._remaining_text()}")
+
     def _throttled(self, line: Callable[[], str]):
         now = time.time()
         if now - self.last >= self.interval:
@@ -121,6 +129,9 @@ class Console:
         elif kind == "meta_step" and name in self.progress:
             self.progress[name].record_meta_step(event["member"], event["task"], event["meta_step"],
                                                  event["meta_steps"], event["bc_loss"])
+        elif kind == "compress_iteration" and name in self.progress:
+            self.progress[name].record_compress(event["member"], event["task"], event["compress_iteration"],
+                                                event["compress_iterations"], event["kl"])
         elif kind == "chunk":
             entry, start, stop = event["entry"], event["start"], event["stop"]
             _report_chunk(self.log, entry, event["metrics"], start, stop, event["num_tasks"])

@@ -63,8 +63,8 @@ def test_results_schema(full_run):
         np.testing.assert_allclose(m["env_steps_to_success_mean"], np.asarray(m["iterations_to_success_mean"]) * 200)
     sig = results["significance"]["against"]["ppo_tl"]
     assert sig["bootstrap_samples"] == 30_000 and set(sig) >= {"p_ttest", "p_bootstrap", "t"}
-    for plot in ("iterations_to_success", "samples_to_success", "lifelong_return", "per_task_return", "backward_transfer",
-                 "heldout_meta_test"):
+    for plot in ("iterations_to_success", "samples_to_success", "lifelong_return", "per_task_return",
+                 "backward_transfer", "heldout_meta_test"):
         assert (full_run / "plots" / f"{plot}.png").stat().st_size > 1000
     table = (full_run / "significance.md").read_text()
     assert table.startswith("Statistic") and "| comps vs |" in table and "Interquartile mean (IQM)" in table

@@ -175,8 +175,10 @@ def make(family: Family, config: MAMLTLConfig = MAMLTLConfig(), progress_fn: Opt
             def skip(_):
                 return params, opt_state, jnp.zeros((4,), jnp.float32), jnp.float32(0.0)
 
-            new_params, new_opt, terms, bad = jax.lax.cond(
-                solved | ~rollout_finite, skip, lambda _: update(params, opt_state, pre, pre_traj, post_traj, k_upd), None)
+            def learn(_):
+                return update(params, opt_state, pre, pre_traj, post_traj, k_upd)
+
+            new_params, new_opt, terms, bad = jax.lax.cond(solved | ~rollout_finite, skip, learn, None)
             bad = jnp.maximum(bad, 1.0 - rollout_finite.astype(jnp.float32))
             row = ppo.IterationMetrics(mean_return, success_rate, terms[0], terms[1], terms[2], terms[3], bad,
                                        jnp.array(True))
