@@ -5,6 +5,7 @@ import dataclasses
 import json
 import os
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -141,6 +142,15 @@ def test_ewc_penalty_is_zero_at_the_anchor_and_grows_with_fisher_weighted_distan
     assert at(0.4, zero) == 0.0
     doubled = jax.tree.map(lambda f: 2 * f, fisher)
     np.testing.assert_allclose(at(0.1, doubled), 2 * at(0.1), rtol=1e-5)
+    # The distillation loss is the KL plus exactly this penalty, and its gradient pulls back towards the anchor.
+    obs = jax.random.normal(jax.random.PRNGKey(8), (5, kb["obs_norm"].mean.shape[0]))
+    t_mean, t_log_std = networks.policy_dist(kb, obs)
+    moved = jax.tree.map(lambda a, d: a + 0.1 * d, anchor, direction)
+    loss, kl = pnc.distill_loss(config, moved, kb, t_mean, t_log_std, obs, jnp.ones(5), anchor, fisher)
+    np.testing.assert_allclose(float(loss - kl), at(0.1), rtol=1e-4)
+    grad = jax.grad(lambda t: pnc.distill_loss(config, t, kb, t_mean, t_log_std, obs, jnp.ones(5), anchor,
+                                               fisher)[0])(moved)
+    assert sum(float(jnp.vdot(g, d)) for g, d in zip(jax.tree.leaves(grad), jax.tree.leaves(direction))) > 0
 
 
 def test_distillation_lowers_the_kl_and_updates_the_online_fisher():
@@ -150,9 +160,10 @@ def test_distillation_lowers_the_kl_and_updates_the_online_fisher():
     fisher0 = jax.tree.map(lambda x: jnp.full(x.shape, 0.5, x.dtype), pnc.trainable(kb))
     run = jax.jit(lambda kb, active: pnc.compress(config, family, kb, active, task, fisher0, pnc.trainable(kb),
                                                   jax.random.PRNGKey(7), 4))
-    new_kb, fisher, anchor, kls = run(kb, active)
+    new_kb, fisher, anchor, kls, bad = run(kb, active)
     kls = np.asarray(kls)
     assert kls[-1] < 0.5 * kls[0], kls
+    assert float(bad) == 0.0
     # The anchor is the new knowledge base; F* = γ F*_old + F_k with F_k normalised to a largest entry of 1.
     for a, b in zip(jax.tree.leaves(anchor), jax.tree.leaves(pnc.trainable(new_kb))):
         np.testing.assert_array_equal(a, b)
@@ -181,7 +192,7 @@ def test_learn_task_reports_the_shared_metrics(name):
     state2, metrics = jax.jit(method.learn_task)(state, envs.task_at(family, 0))
     assert metrics.per_iteration.valid.shape == (4,)
     assert 1 <= int(metrics.iterations) <= 4 and int(state2.task_index) == 1
-    assert jax.tree.structure(state2) == jax.tree.structure(state)
+    chex.assert_trees_all_equal_shapes_and_dtypes(state2, state)  # a lax.scan over tasks can carry it
     steps = methods.base.env_steps_per_iteration(method)
     assert steps == (2 if name == "maml_tl" else 1) * TINY_PPO.num_trajectories * family.max_steps
 

@@ -138,15 +138,14 @@ def adaptors_init(rng: jax.Array, sizes: Sequence[int]) -> list[dict]:
     with one hidden layer as wide as its input, and a trainable scale vector α_i ~ U(0, 0.1) of layer i's width.
     """
     out = []
-    keys = jax.random.split(rng, max(1, 2 * (len(sizes) - 2)))
     for i in range(1, len(sizes) - 1):
         n_in, n_out = sizes[i], sizes[i + 1]
-        kv, ku = keys[2 * (i - 1)], keys[2 * (i - 1) + 1]
+        kv, ku, ka = jax.random.split(jax.random.fold_in(rng, i), 3)
         out.append({
             "v": jax.nn.initializers.orthogonal(math.sqrt(2.0))(kv, (n_in, n_in), jnp.float32),
             "c": jnp.zeros((n_in,), jnp.float32),
             "u": jax.nn.initializers.orthogonal(1.0)(ku, (n_in, n_out), jnp.float32),
-            "alpha": jax.random.uniform(jax.random.fold_in(ku, 1), (n_out,), jnp.float32, 0.0, 0.1),
+            "alpha": jax.random.uniform(ka, (n_out,), jnp.float32, 0.0, 0.1),
         })
     return out
 

@@ -4,8 +4,8 @@ latest task; θ carries over to the next task (the paper's "Prior methods": MAML
 One iteration on task i:
 
 1. collect ``num_trajectories`` episodes with θ (the pre-update batch);
-2. inner step φ = θ + α ∇_θ J(θ), J the vanilla policy gradient −(−mean log π_θ(a|s) Â) with GAE advantages
-   from the value network (constants: the baseline), normalised like PPO's;
+2. inner step φ = θ + α ∇_θ J(θ), J(θ) = mean log π_θ(a|s) Â (the vanilla policy-gradient objective) with GAE
+   advantages from the value network (constants: the baseline), normalised like PPO's;
 3. collect ``num_trajectories`` episodes with φ (the post-update batch); the iteration's success rate is φ's:
    it is what iterations-to-success counts;
 4. unless the threshold is reached, ``num_updates`` Adam steps (``minibatch_size`` samples of the post-update

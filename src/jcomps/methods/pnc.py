@@ -153,12 +153,17 @@ def compress(config: PNCConfig, family: Family, kb: dict, active: dict, task, fi
              rng: jax.Array, iterations: int, progress_fn: Optional[ProgressFn] = None):
     """The compress phase: ``iterations`` on-policy batches from the active column, each followed by
     ``num_updates`` Adam steps distilling it into the knowledge base under the EWC penalty; then the online-EWC
-    update. Returns (kb, fisher F*_k, anchor θ*_k, mean KL f32[iterations] before each batch's steps)."""
+    update. Returns (kb, fisher F*_k, anchor θ*_k, KL f32[iterations]: on each iteration's first minibatch, before
+    its steps, nonfinite f32[]: 1 if a step was skipped for a NaN or infinity).
+
+    The knowledge base's observation statistics are set once, from the active column's at its first compress
+    phase, and then kept: new statistics would change the function the EWC anchor and Fisher protect."""
     pcfg = config.ppo
     optimizer = optax.adam(config.distill_learning_rate)
     acting_policy = with_kb(active, kb)  # the teacher, fixed through the phase (its laterals read this KB)
     grad_fn = jax.value_and_grad(distill_loss, argnums=1, has_aux=True)
-    kb = {**kb, "obs_norm": active["obs_norm"]}  # the statistics describe the data; the KB reads them too
+    fresh = kb["obs_norm"].count <= 0
+    kb = {**kb, "obs_norm": jax.tree.map(lambda a, k: jnp.where(fresh, a, k), active["obs_norm"], kb["obs_norm"])}
 
     def batch(key):
         traj = acting.rollout(family, acting_policy, task, key, pcfg.num_trajectories)
@@ -167,7 +172,7 @@ def compress(config: PNCConfig, family: Family, kb: dict, active: dict, task, fi
         return obs, traj.valid.reshape(-1), mean, log_std
 
     def one_iteration(carry, xs):
-        theta, opt_state = carry
+        theta, opt_state, bad = carry
         key, it = xs
         k_roll, k_perm = jax.random.split(key)
         obs, valid, t_mean, t_log_std = batch(k_roll)
@@ -178,29 +183,31 @@ def compress(config: PNCConfig, family: Family, kb: dict, active: dict, task, fi
         indices = perms.reshape(-1)[:total].reshape(pcfg.num_updates, minibatch)
 
         def step(carry, idx):
-            theta, opt_state = carry
+            theta, opt_state, bad = carry
             (loss, kl), g = grad_fn(config, theta, kb, t_mean[idx], t_log_std, obs[idx], valid[idx], anchor, fisher)
             up, new_opt = optimizer.update(g, opt_state, theta)
-            carry = keep_if_finite(all_finite((loss, g)), (optax.apply_updates(theta, up), new_opt), carry)
-            return carry, kl
+            finite = all_finite((loss, g))
+            theta, opt_state = keep_if_finite(finite, (optax.apply_updates(theta, up), new_opt), (theta, opt_state))
+            return (theta, opt_state, bad | ~finite), kl
 
-        (theta, opt_state), kls = jax.lax.scan(step, (theta, opt_state), indices)
+        (theta, opt_state, bad), kls = jax.lax.scan(step, (theta, opt_state, bad), indices)
         if progress_fn is not None:
             progress_fn({"compress_iteration": it + 1, "compress_iterations": jnp.int32(iterations),
                          "kl": kls[0]})
-        return (theta, opt_state), (kls[0], obs, valid)
+        return (theta, opt_state, bad), (kls[0], obs, valid)
 
     theta0 = trainable(kb)
-    keys = jax.random.split(rng, iterations + 1)
-    (theta, _), (kls, obs, valid) = jax.lax.scan(one_iteration, (theta0, optimizer.init(theta0)),
-                                                 (keys[:-1], jnp.arange(iterations, dtype=jnp.int32)))
+    keys = jax.random.split(rng, iterations + 2)
+    init = (theta0, optimizer.init(theta0), jnp.array(False))
+    (theta, _, bad), (kls, obs, valid) = jax.lax.scan(one_iteration, init,
+                                                      (keys[:-2], jnp.arange(iterations, dtype=jnp.int32)))
     kb = {**kb, **theta}
     last_obs, last_valid = obs[-1], valid[-1]
     n = min(config.fisher_states, last_obs.shape[0])
-    pick = jax.random.choice(keys[-1], last_obs.shape[0], (n,), replace=False)
-    new_fisher = diagonal_fisher(kb, last_obs[pick], last_valid[pick], jax.random.fold_in(keys[-1], 1))
+    pick = jax.random.choice(keys[-2], last_obs.shape[0], (n,), replace=False)
+    new_fisher = diagonal_fisher(kb, last_obs[pick], last_valid[pick], keys[-1])
     fisher = jax.tree.map(lambda old, f: config.ewc_gamma * old + f, fisher, new_fisher)
-    return kb, fisher, trainable(kb), kls
+    return kb, fisher, trainable(kb), kls, bad.astype(jnp.float32)
 
 
 def make(family: Family, config: PNCConfig = PNCConfig(), progress_fn: Optional[ProgressFn] = None) -> Method:
@@ -230,10 +237,13 @@ def make(family: Family, config: PNCConfig = PNCConfig(), progress_fn: Optional[
         out = ppo.rl_step(pcfg, family, params, optimizer.init(params), task, k_rl, progress_fn=report,
                           budget=n_progress)
         active = {k: v for k, v in out.params.policy.items() if k != "kb"}  # the KB is frozen: keep it exactly
-        kb, fisher, anchor, _ = compress(config, family, kb, active, task, state.fisher, state.anchor, k_compress,
-                                         n_compress, progress_fn=report)
+        kb, fisher, anchor, _, bad = compress(config, family, kb, active, task, state.fisher, state.anchor,
+                                              k_compress, n_compress, progress_fn=report)
         pad = lambda x: jnp.concatenate([x, jnp.zeros((n_compress,), x.dtype)])  # noqa: E731
         metrics = jax.tree.map(pad, out.metrics)
+        # A skipped compress step is flagged on the task's last progress iteration (the runner reports it).
+        last = out.iterations - 1
+        metrics = metrics._replace(nonfinite=metrics.nonfinite.at[last].max(bad))
         iterations = jnp.where(out.solved, out.iterations, budget)
         new = PNCState(networks.ActorCriticParams(kb, out.params.value), active, fisher, anchor, rng,
                        state.task_index + 1)
