@@ -345,6 +345,8 @@ def test_console_turns_runner_events_into_lines(console, tmp_path):
           "mean_return": -3.0})
     show({"event": "meta_step", "program": "comps", "member": 1, "task": 0, "meta_step": 7, "meta_steps": 125,
           "bc_loss": 1.25})
+    show({"event": "compress_iteration", "program": "comps", "member": 0, "task": 0, "compress_iteration": 2,
+          "compress_iterations": 15, "kl": 0.5})
     metrics = _chunk_metrics(3, 1, 4, nonfinite_at=(2, 0, 1))
     show({"event": "chunk", "program": "comps", "entry": "comps", "start": 0, "stop": 1, "num_tasks": 2,
           "seeds": [0, 1, 2], "metrics": metrics, "per_task": metrics})
@@ -354,9 +356,10 @@ def test_console_turns_runner_events_into_lines(console, tmp_path):
                         "device(s), budget 4, chunks of 1; compiling...")
     assert lines[1].startswith("[comps] task 1/2 iteration 3 success 0.12")
     assert lines[2].startswith("[comps] task 1/2 meta-training step 7/125 bc loss 1.250")
-    assert lines[3] == "[comps] task 1/2 iterations-to-success per seed: [4, 4, 4] (mean 4.0)"
-    assert lines[4].startswith("error: [comps] non-finite values (NaN/inf) at seed 2, task 1, iteration 2")
-    assert lines[5] == "warning: checkpoint step 2 cannot be read" and lines[6] == "[comps] done in 1m15s"
+    assert lines[3].startswith("[comps] task 1/2 compress iteration 2/15 kl ")  # pnc's compress phase
+    assert lines[4] == "[comps] task 1/2 iterations-to-success per seed: [4, 4, 4] (mean 4.0)"
+    assert lines[5].startswith("error: [comps] non-finite values (NaN/inf) at seed 2, task 1, iteration 2")
+    assert lines[6] == "warning: checkpoint step 2 cannot be read" and lines[7] == "[comps] done in 1m15s"
 
 
 def test_console_writes_tensorboard(console, tmp_path):
