@@ -99,15 +99,18 @@ def inner_step(config: MAMLTLConfig, policy: dict, pre: dict) -> dict:
 
 
 def outer_loss(config: MAMLTLConfig, params: networks.ActorCriticParams, pre: dict, post: dict):
-    """PPO's loss of the adapted policy φ(θ) on the (minibatch of the) post-update batch ``post``, plus the value
-    loss on ``pre`` (the same samples' share of the pre-update batch); returns (loss, (policy loss, value loss,
-    entropy, approx KL)). Its gradient in ``params.policy`` is the MAML meta-gradient."""
+    """PPO's loss of the adapted policy φ(θ) on the (minibatch of the) post-update batch ``post``, with the value
+    loss averaged over ``post`` and ``pre["minibatch"]`` (the same samples' share of the pre-update batch), so the
+    value term weighs what it weighs in PPO; returns (loss, (policy loss, value loss, entropy, approx KL)). Its
+    gradient in ``params.policy`` is the MAML meta-gradient."""
     adapted = networks.ActorCriticParams(inner_step(config, params.policy, pre["full"]), params.value)
-    loss, (pl, vl, ent, kl) = ppo.ppo_loss(adapted, post, config.ppo)
+    policy_only = dataclasses.replace(config.ppo, value_coef=0.0)
+    loss, (pl, vl, ent, kl) = ppo.ppo_loss(adapted, post, policy_only)
     pre_mb = pre["minibatch"]
     pre_vl = 0.5 * masked_mean(jnp.square(networks.value_of(params, pre_mb["obs"]) - pre_mb["target"]),
                                pre_mb["valid"])
-    return loss + config.ppo.value_coef * pre_vl, (pl, 0.5 * (vl + pre_vl), ent, kl)
+    value_loss = 0.5 * (vl + pre_vl)
+    return loss + config.ppo.value_coef * value_loss, (pl, value_loss, ent, kl)
 
 
 def make(family: Family, config: MAMLTLConfig = MAMLTLConfig(), progress_fn: Optional[ProgressFn] = None) -> Method:
