@@ -7,7 +7,8 @@ Two columns, both with hidden layers ``ppo.hidden_sizes`` (paper: [128, 128]):
 - the *active column*: a policy whose layers i >= 2 receive layer-wise adaptors from the KB's hidden layer i − 1
   (``networks.column_mean``), and a value network. It is re-initialised, adaptors included, at every new task
   (``reset_active``; Schwarz et al. recommend it for diverse tasks, and their Atari ablation keeps transfer
-  only with it); the observation statistics are data and carry over.
+  only with it) to the initial parameters drawn once per seed by ``init``; the observation statistics are data
+  and carry over.
 
 Per task, with budget N and C = ceil(``compress_fraction`` · N) compress iterations:
 
@@ -74,10 +75,12 @@ class PNCConfig:
 class PNCState(NamedTuple):
     """params: ActorCriticParams (policy: the knowledge base; value: the active column's value network);
     active: the active column's policy (layers, log-std, observation statistics, adaptors; no ``kb`` entry);
+    fresh: the active column's initial policy and value network (``reset_active`` restores them at every new task);
     fisher: F*, the running Fisher over the KB's trainable leaves; anchor: θ*_{k−1}; rng; task_index: i32[]."""
 
     params: networks.ActorCriticParams
     active: dict
+    fresh: networks.ActorCriticParams
     fisher: dict
     anchor: dict
     rng: jax.Array
@@ -223,13 +226,17 @@ def make(family: Family, config: PNCConfig = PNCConfig(), progress_fn: Optional[
         kb = ppo.init_params(pcfg, family, k_kb).policy
         active, value = init_active(config, family, k_active, kb["obs_norm"])
         zeros = jax.tree.map(jnp.zeros_like, trainable(kb))
-        return PNCState(networks.ActorCriticParams(kb, value), active, zeros, trainable(kb), rng, jnp.int32(0))
+        return PNCState(networks.ActorCriticParams(kb, value), active, networks.ActorCriticParams(active, value),
+                        zeros, trainable(kb), rng, jnp.int32(0))
 
     def learn_task(state: PNCState, task) -> tuple[PNCState, TaskMetrics]:
-        rng, k_reset, k_rl, k_compress = jax.random.split(state.rng, 4)
+        rng, k_rl, k_compress = jax.random.split(state.rng, 3)
         kb = state.params.policy
         if config.reset_active:
-            active, value = init_active(config, family, k_reset, state.active["obs_norm"])
+            # The initial parameters, not a fresh draw: an orthogonal draw here would run batched QR kernels inside
+            # the vmapped program, which can deadlock XLA:CPU's thread pool (jcomps.hostdevices; it hung a study).
+            active = {**state.fresh.policy, "obs_norm": state.active["obs_norm"]}
+            value = state.fresh.value
         else:
             active, value = state.active, state.params.value
         params = networks.ActorCriticParams(with_kb(active, kb), value)
@@ -245,7 +252,7 @@ def make(family: Family, config: PNCConfig = PNCConfig(), progress_fn: Optional[
         last = out.iterations - 1
         metrics = metrics._replace(nonfinite=metrics.nonfinite.at[last].max(bad))
         iterations = jnp.where(out.solved, out.iterations, budget)
-        new = PNCState(networks.ActorCriticParams(kb, out.params.value), active, fisher, anchor, rng,
+        new = PNCState(networks.ActorCriticParams(kb, out.params.value), active, state.fresh, fisher, anchor, rng,
                        state.task_index + 1)
         return new, TaskMetrics(iterations, out.solved, metrics)
 
