@@ -59,7 +59,7 @@ REGISTRY: dict[str, Registered] = {
     "gmps_ppo_is": Registered(comps.CoMPSConfig(warm_start=False), comps.named("gmps_ppo_is")),
     "gmps_ppo_is_x2": Registered(comps.CoMPSConfig(warm_start=False, num_skilled=40), comps.named("gmps_ppo_is_x2")),
     "maml_tl": Registered(maml_tl.MAMLTLConfig(), maml_tl.make),
-    "pnc": Registered(pnc.PNCConfig(), pnc.make),
+    "pnc": Registered(pnc.PNCConfig(), pnc.make, {"hidden_sizes": pnc.PNCConfig().ppo.hidden_sizes}),
 }
 METHODS = tuple(REGISTRY)
 
