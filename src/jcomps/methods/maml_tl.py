@@ -104,13 +104,13 @@ def outer_loss(config: MAMLTLConfig, params: networks.ActorCriticParams, pre: di
     value term weighs what it weighs in PPO; returns (loss, (policy loss, value loss, entropy, approx KL)). Its
     gradient in ``params.policy`` is the MAML meta-gradient."""
     adapted = networks.ActorCriticParams(inner_step(config, params.policy, pre["full"]), params.value)
-    policy_only = dataclasses.replace(config.ppo, value_coef=0.0)
-    loss, (pl, vl, ent, kl) = ppo.ppo_loss(adapted, post, policy_only)
+    loss, (pl, vl, ent, kl) = ppo.ppo_loss(adapted, post, config.ppo)  # its value term: value_coef · vl
     pre_mb = pre["minibatch"]
     pre_vl = 0.5 * masked_mean(jnp.square(networks.value_of(params, pre_mb["obs"]) - pre_mb["target"]),
                                pre_mb["valid"])
     value_loss = 0.5 * (vl + pre_vl)
-    return loss + config.ppo.value_coef * value_loss, (pl, value_loss, ent, kl)
+    # (No dataclasses.replace of the config here: its fields may be traced grid values.)
+    return loss + config.ppo.value_coef * (value_loss - vl), (pl, value_loss, ent, kl)
 
 
 def make(family: Family, config: MAMLTLConfig = MAMLTLConfig(), progress_fn: Optional[ProgressFn] = None) -> Method:
