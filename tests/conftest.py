@@ -21,6 +21,8 @@ if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", "")
     hostdevices.configure(2)
 
 import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 from hypothesis import settings  # noqa: E402
 
@@ -47,6 +49,30 @@ def _script_fixture(fixture_name: str, script: str, doc: str):
 
     fixture.__doc__ = doc
     return pytest.fixture(scope="session", name=fixture_name)(fixture)
+
+
+def _check_meta_gradient(loss, grad, params, policy_of, eps: float, rtol: float, first_order: bool):
+    """The meta-gradient ``grad`` (a pytree like ``params``) against central finite differences of ``loss`` along a
+    random direction. The observation statistics (``policy_of(tree)["obs_norm"]``) are data, not parameters (no
+    gradient by design), so the direction holds them fixed. Second order, the two must agree to ``rtol``; first
+    order drops the inner step's curvature, so they must not (by more than 1e-3 relative)."""
+    rng = np.random.default_rng(3)
+    direction = jax.tree.map(lambda x: jnp.asarray(rng.normal(size=x.shape)), params)
+    policy_of(direction)["obs_norm"] = jax.tree.map(jnp.zeros_like, policy_of(direction)["obs_norm"])
+    shift = lambda s: jax.tree.map(lambda p, d: p + s * eps * d, params, direction)  # noqa: E731
+    numeric = (loss(shift(1.0)) - loss(shift(-1.0))) / (2 * eps)
+    analytic = sum(jnp.vdot(g, d) for g, d in zip(jax.tree.leaves(grad), jax.tree.leaves(direction)))
+    if first_order:
+        assert abs(float(analytic) - float(numeric)) > 1e-3 * abs(float(numeric))
+    else:
+        np.testing.assert_allclose(float(analytic), float(numeric), rtol=rtol)
+
+
+@pytest.fixture(scope="session")
+def check_meta_gradient():
+    """``check(loss, grad, params, policy_of, eps, rtol, first_order)``: a meta-gradient against finite
+    differences (test_meta, test_baselines)."""
+    return _check_meta_gradient
 
 
 console = _script_fixture("console", "progress", "The runner's progress lines and TensorBoard logs.")

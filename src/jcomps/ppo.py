@@ -228,13 +228,10 @@ def ppo_loss(params: networks.ActorCriticParams, batch: dict, config: PPOConfig)
 
 
 
-def ppo_update(config: PPOConfig, optimizer, params, opt_state, traj: acting.Trajectory, rng: jax.Array):
-    """``num_updates`` minibatch Adam steps on one iteration's batch.
-
-    Minibatches walk through fresh permutations of the T·B samples, so each sample is used about equally.
-    A step whose loss or gradient is not finite is skipped. Returns (params, opt_state, mean loss terms f32[4],
-    nonfinite f32[]).
-    """
+def flat_batch(config: PPOConfig, params: networks.ActorCriticParams, traj: acting.Trajectory) -> dict:
+    """One batch's samples flattened to [T·B, ...] (``obs``, ``action``, ``log_prob``, ``valid``) with their GAE
+    ``advantage`` and value ``target`` under ``params``' value network (reward-scaled; the bootstrap at T_max is
+    the truncation's)."""
     values = networks.value_of(params, traj.obs)
     bootstrap = networks.value_of(params, traj.last_obs)
     advantage, target = gae(traj.reward * config.reward_scale, values, bootstrap, traj.done, config.discount,
@@ -243,13 +240,33 @@ def ppo_update(config: PPOConfig, optimizer, params, opt_state, traj: acting.Tra
         "obs": traj.obs, "action": traj.action, "log_prob": traj.log_prob, "valid": traj.valid,
         "advantage": advantage, "target": target,
     }
-    flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), flat)
-    n = flat["valid"].shape[0]
+    return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), flat)
+
+
+def minibatch_indices(config: PPOConfig, n: int, rng: jax.Array) -> jax.Array:
+    """i32[num_updates, minibatch] sample indices into a batch of ``n``: minibatches walk through fresh
+    permutations of the samples, so each is used about equally (``minibatch_size`` 0: the whole batch)."""
     minibatch = config.minibatch_size or n
     total = config.num_updates * minibatch
     n_perm = max(1, -(-total // n))
     perms = jax.vmap(lambda k: jax.random.permutation(k, n))(jax.random.split(rng, n_perm))
-    indices = perms.reshape(-1)[:total].reshape(config.num_updates, minibatch)
+    return perms.reshape(-1)[:total].reshape(config.num_updates, minibatch)
+
+
+def empty_metrics(budget: int) -> IterationMetrics:
+    """IterationMetrics of ``budget`` iterations, none of them run yet (zeros, ``valid`` False)."""
+    zeros = jnp.zeros((budget,), jnp.float32)
+    return IterationMetrics(zeros, zeros, zeros, zeros, zeros, zeros, zeros, jnp.zeros((budget,), bool))
+
+
+def ppo_update(config: PPOConfig, optimizer, params, opt_state, traj: acting.Trajectory, rng: jax.Array):
+    """``num_updates`` minibatch Adam steps on one iteration's batch (``flat_batch``, ``minibatch_indices``).
+
+    A step whose loss or gradient is not finite is skipped. Returns (params, opt_state, mean loss terms f32[4],
+    nonfinite f32[]).
+    """
+    flat = flat_batch(config, params, traj)
+    indices = minibatch_indices(config, flat["valid"].shape[0], rng)
     grad_fn = jax.value_and_grad(ppo_loss, has_aux=True)
 
     def step(carry, idx):
@@ -283,8 +300,7 @@ def rl_step(config: PPOConfig, family: Family, params: networks.ActorCriticParam
     """
     budget = config.budget_for(family) if budget is None else budget
     optimizer = make_optimizer(config)
-    zeros = jnp.zeros((budget,), jnp.float32)
-    metrics0 = IterationMetrics(zeros, zeros, zeros, zeros, zeros, zeros, zeros, jnp.zeros((budget,), bool))
+    metrics0 = empty_metrics(budget)
 
     class Carry(NamedTuple):
         params: Any

@@ -171,9 +171,9 @@ def default_baseline(methods_run) -> Optional[str]:
     return "comps" if "comps" in methods_run else None
 
 
-def env_steps_per_iteration(description: dict, method: str, values: Optional[dict]) -> int:
-    """Env steps one iteration of ``method`` collects in the run ``description`` (at grid point ``values``)."""
-    family = envs.make(description["run"]["family"])
+def env_steps_per_iteration(description: dict, family, method: str, values: Optional[dict]) -> int:
+    """Env steps one iteration of ``method`` collects in the run ``description`` on its ``family`` (at grid point
+    ``values``)."""
     config = cli.config_from_dict(methods.default_config(method, family), description["methods"][method])
     for field, value in (values or {}).items():
         config = grids.replace_flat(config, field, value)
@@ -187,6 +187,7 @@ def summarize(description: dict, raws: dict, baseline: Optional[str] = None) -> 
     seeds = list(range(run["seed"], run["seed"] + run["seeds"]))
     results = {"description": description, "seeds": seeds, "methods": {}}
     entries = _entries(description)
+    family = envs.make(run["family"])
     overall_its, overall_ret = {}, {}
     for method, name, values in entries:
         raw = raws[name]
@@ -197,7 +198,7 @@ def summarize(description: dict, raws: dict, baseline: Optional[str] = None) -> 
         mean, se = _mean_se(its)
         bt = backward_transfer(raw)
         h_ret = raw.heldout.mean_return.mean(axis=2)  # [seeds, points, iterations + 1], averaged over tasks
-        steps = env_steps_per_iteration(description, method, values)
+        steps = env_steps_per_iteration(description, family, method, values)
         entry = results["methods"][name] = {
             "iterations_to_success": its.astype(int).tolist(),
             "iterations_to_success_mean": mean.round(3).tolist(),

@@ -26,7 +26,7 @@ from typing import Any, Callable, NamedTuple, Optional
 
 from jcomps import meta, ppo
 from jcomps.envs.base import Family
-from jcomps.methods import comps, maml_tl, pnc, ppo_tl
+from jcomps.methods import base, comps, maml_tl, pnc, ppo_tl
 from jcomps.methods.base import Method, TaskMetrics
 from jcomps.progress import ProgressFn
 
@@ -102,8 +102,6 @@ def make(name: str, family: Family, config=None, progress_fn: Optional[ProgressF
 
 def env_steps_per_iteration(name: str, family: Family, config=None) -> int:
     """Env steps one iteration of method ``name`` collects with ``config`` (default: its default config)."""
-    from jcomps.methods import base  # noqa: PLC0415 - the function of the same name there
-
     return base.env_steps_per_iteration(make(name, family, config))
 
 

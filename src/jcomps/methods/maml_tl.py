@@ -65,22 +65,6 @@ class MAMLTLState(NamedTuple):
     task_index: jax.Array
 
 
-def _flat(traj: acting.Trajectory, advantage, target) -> dict:
-    """The per-sample arrays of a batch, flattened to [T·B, ...]."""
-    batch = {"obs": traj.obs, "action": traj.action, "log_prob": traj.log_prob, "valid": traj.valid,
-             "advantage": advantage, "target": target}
-    return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), batch)
-
-
-def advantages(config: ppo.PPOConfig, params: networks.ActorCriticParams, traj: acting.Trajectory):
-    """GAE advantages and value targets f32[T, B] of ``traj`` under ``params``' value network (constants)."""
-    values = networks.value_of(params, traj.obs)
-    bootstrap = networks.value_of(params, traj.last_obs)
-    adv, target = ppo.gae(traj.reward * config.reward_scale, values, bootstrap, traj.done, config.discount,
-                          config.gae_lambda)
-    return jax.lax.stop_gradient((adv, target))
-
-
 def inner_step(config: MAMLTLConfig, policy: dict, pre: dict) -> dict:
     """φ = θ + α ∇_θ J(θ), J(θ) = mean log π_θ(a|s) Â over the valid samples of the flat pre-update batch ``pre``
     (advantages normalised if ``ppo.normalize_advantages``). Differentiable in ``policy`` (second order) unless
@@ -125,12 +109,8 @@ def make(family: Family, config: MAMLTLConfig = MAMLTLConfig(), progress_fn: Opt
         return MAMLTLState(params, optimizer.init(params), rng, jnp.int32(0))
 
     def update(params, opt_state, pre, pre_traj, post_traj, rng):
-        post = _flat(post_traj, *advantages(pcfg, params, post_traj))
-        n = post["valid"].shape[0]
-        minibatch = pcfg.minibatch_size or n
-        total = pcfg.num_updates * minibatch
-        perms = jax.vmap(lambda k: jax.random.permutation(k, n))(jax.random.split(rng, max(1, -(-total // n))))
-        indices = perms.reshape(-1)[:total].reshape(pcfg.num_updates, minibatch)
+        post = ppo.flat_batch(pcfg, params, post_traj)
+        indices = ppo.minibatch_indices(pcfg, post["valid"].shape[0], rng)
         grad_fn = jax.value_and_grad(outer_loss, argnums=1, has_aux=True)
 
         def step(carry, idx):
@@ -155,8 +135,7 @@ def make(family: Family, config: MAMLTLConfig = MAMLTLConfig(), progress_fn: Opt
         rng, k_task = jax.random.split(state.rng)
         opt_state = optimizer.init(state.params) if config.reset_optimizer else state.opt_state
         report = with_fields(progress_fn, task=state.task_index)
-        zeros = jnp.zeros((budget,), jnp.float32)
-        metrics0 = ppo.IterationMetrics(zeros, zeros, zeros, zeros, zeros, zeros, zeros, jnp.zeros((budget,), bool))
+        metrics0 = ppo.empty_metrics(budget)
 
         def cond(c):
             return (~c[4]) & (c[3] < budget)
@@ -165,7 +144,7 @@ def make(family: Family, config: MAMLTLConfig = MAMLTLConfig(), progress_fn: Opt
             params, opt_state, key, it, _, metrics = c
             key, k_pre, k_post, k_upd = jax.random.split(key, 4)
             pre_traj = acting.rollout(family, params.policy, task, k_pre, B)
-            pre = _flat(pre_traj, *advantages(pcfg, params, pre_traj))
+            pre = ppo.flat_batch(pcfg, params, pre_traj)
             adapted = inner_step(config, params.policy, pre)
             post_traj = acting.rollout(family, adapted, task, k_post, B)
             success_rate = family.success_rate(post_traj.success)

@@ -179,11 +179,7 @@ def compress(config: PNCConfig, family: Family, kb: dict, active: dict, task, fi
         key, it = xs
         k_roll, k_perm = jax.random.split(key)
         obs, valid, t_mean, t_log_std = batch(k_roll)
-        n = obs.shape[0]
-        minibatch = pcfg.minibatch_size or n
-        total = pcfg.num_updates * minibatch
-        perms = jax.vmap(lambda k: jax.random.permutation(k, n))(jax.random.split(k_perm, max(1, -(-total // n))))
-        indices = perms.reshape(-1)[:total].reshape(pcfg.num_updates, minibatch)
+        indices = ppo.minibatch_indices(pcfg, obs.shape[0], k_perm)
 
         def step(carry, idx):
             theta, opt_state, bad = carry
