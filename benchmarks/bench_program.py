@@ -40,7 +40,8 @@ def _seconds(fn, *args):
 
 
 def bench(family_name: str, method: str, members: int, tasks: int, budget: int, repeats: int,
-          parts: bool = True, compile_only: bool = False, wait_for: str | None = None) -> str:
+          parts: bool = True, compile_only: bool = False, wait_for: str | None = None,
+          signal: str | None = None) -> str:
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -92,6 +93,8 @@ def bench(family_name: str, method: str, members: int, tasks: int, budget: int, 
     if compile_only:
         return (f"family={family_name} method={method} members={members} compile_only=1 "
                 + " ".join(f"{name}_first_call_s={s:.1f}" for name, s in first.items()))
+    if signal:
+        open(signal, "w").close()
     while wait_for and not os.path.exists(wait_for):
         time.sleep(0.5)
     times = {name: [] for name in cases}
@@ -136,6 +139,9 @@ def main():
                         help="after compiling, wait until FILE exists before timing (compile while other jobs run, "
                              "time alone; the chunk program holds host callbacks, which JAX's persistent "
                              "compilation cache does not keep)")
+    parser.add_argument("--signal", default=None, metavar="FILE",
+                        help="create FILE once compiled (before --wait-for), so that a script running several "
+                             "benchmarks side by side can time them one at a time")
     args = parser.parse_args()
     hostdevices.configure(1)
     import jax
@@ -143,7 +149,7 @@ def main():
     print(f"backend={jax.default_backend()} devices={jax.devices()}", flush=True)
     for m in args.members:
         print(bench(args.family, args.method, m, args.tasks, args.budget, args.repeats, args.parts,
-                    args.compile_only, args.wait_for), flush=True)
+                    args.compile_only, args.wait_for, args.signal), flush=True)
 
 
 if __name__ == "__main__":
