@@ -27,9 +27,9 @@ def _batch(rng, policy, dtype):
             "advantage": f(N), "target": f(N)}
 
 
-def _maml_setup(dtype, first_order=False):
+def _maml_setup(dtype, first_order=False, inner_objective="vpg"):
     config = maml_tl.MAMLTLConfig(ppo=dataclasses.replace(TINY_PPO, hidden_sizes=(5,)), inner_learning_rate=0.5,
-                                  first_order=first_order)
+                                  first_order=first_order, inner_objective=inner_objective)
     params = networks.init_actor_critic(jax.random.PRNGKey(0), OBS, ACT, (5,), 0.5)
     params = jax.tree.map(lambda x: x.astype(dtype), params)
     params = params._replace(policy={**params.policy, "mean": [
@@ -42,10 +42,10 @@ def _maml_setup(dtype, first_order=False):
     return config, params, {"full": pre, "minibatch": pre}, post
 
 
-@pytest.mark.parametrize("first_order", [False, True])
-def test_maml_meta_gradient_matches_finite_differences(first_order, check_meta_gradient):
+@pytest.mark.parametrize("first_order,inner_objective", [(False, "vpg"), (True, "vpg"), (False, "lvc")])
+def test_maml_meta_gradient_matches_finite_differences(first_order, inner_objective, check_meta_gradient):
     with jax.enable_x64(True):
-        config, params, pre, post = _maml_setup(jnp.float64)
+        config, params, pre, post = _maml_setup(jnp.float64, inner_objective=inner_objective)
         loss = jax.jit(lambda p: maml_tl.outer_loss(config, p, pre, post)[0])
         fo_config = dataclasses.replace(config, first_order=first_order)
         grad = jax.jit(jax.grad(lambda p: maml_tl.outer_loss(fo_config, p, pre, post)[0]))(params)
@@ -60,6 +60,23 @@ def test_maml_second_order_differs_from_first_order():
         grads.append(jax.jit(jax.grad(lambda p: maml_tl.outer_loss(config, p, pre, post)[0]))(params).policy["mean"])
     diff = max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(*map(jax.tree.leaves, grads)))
     assert diff > 1e-4
+
+
+def test_maml_lvc_takes_the_same_step_at_the_behaviour_policy_with_more_curvature():
+    """At the behaviour policy ProMP's objective has the vanilla one's gradient, so φ is the same; importance
+    weights ≠ 1 give another step; the meta-gradient differs even on-policy (the ∇log π ∇log πᵀ Â term)."""
+    vpg, params, pre, post = _maml_setup(jnp.float32)
+    lvc = dataclasses.replace(vpg, inner_objective="lvc")
+    full = pre["full"]  # its behaviour log-probs are π's plus noise of 0.01
+    on_policy = {**full, "log_prob": networks.policy_log_prob(params.policy, full["obs"], full["action"])}
+    step = lambda c, batch: maml_tl.inner_step(c, params.policy, batch)  # noqa: E731
+    leaves = jax.tree.leaves
+    max_diff = lambda a, b: max(float(jnp.max(jnp.abs(x - y))) for x, y in zip(leaves(a), leaves(b)))  # noqa: E731
+    assert max_diff(step(vpg, on_policy), step(lvc, on_policy)) < 1e-5
+    assert max_diff(step(vpg, full), step(lvc, full)) > 1e-5
+    batch = {"full": on_policy, "minibatch": on_policy}
+    grad = lambda c: jax.grad(lambda p: maml_tl.outer_loss(c, p, batch, post)[0])(params).policy["mean"]  # noqa: E731
+    assert max_diff(grad(vpg), grad(lvc)) > 1e-4
 
 
 def test_maml_inner_step_is_a_policy_gradient_ascent_step():
@@ -185,9 +202,11 @@ def test_learn_task_reports_the_shared_metrics(name):
     chex.assert_trees_all_equal_shapes_and_dtypes(state2, state)  # a lax.scan over tasks can carry it
     steps = methods.base.env_steps_per_iteration(method)
     assert steps == (2 if name == "maml_tl" else 1) * TINY_PPO.num_trajectories * family.max_steps
+    compress = pnc.compress_iterations(method.config, 4) if name == "pnc" else 0  # PNC's compress phase, per task
+    assert method.env_steps_per_task == compress * TINY_PPO.num_trajectories * family.max_steps
 
 
-@pytest.mark.parametrize("field,value", [("inner_learning_rate", 0.0)])
+@pytest.mark.parametrize("field,value", [("inner_learning_rate", 0.0), ("inner_objective", "trpo")])
 def test_bad_maml_config_names_the_field(field, value):
     with pytest.raises(ValueError, match=field):
         maml_tl.MAMLTLConfig(**{field: value})
@@ -221,6 +240,12 @@ def test_baselines_run_end_to_end_with_samples_to_success(baselines_run):
         m = results["methods"][name]
         assert np.asarray(m["iterations_to_success"]).shape == (2, 3)
         assert m["env_steps_per_iteration"] == factor * 2 * 100
+        # Samples-to-success: the iterations' batches, plus PNC's compress batch (1 of budget 3) on solved tasks
+        assert m["env_steps_per_task"] == (200 if name == "pnc" else 0)
+        its, solved = np.asarray(m["iterations_to_success"]), np.asarray(m["solved"])
+        expected = its * factor * 200 + solved * m["env_steps_per_task"]
+        np.testing.assert_array_equal(m["env_steps_to_success"], expected)
+        np.testing.assert_allclose(m["env_steps_to_success_mean"], expected.mean(0))
         assert np.asarray(m["backward_transfer"], dtype=object).shape == (2, 3)
         assert m["nonfinite_iterations"] == 0
     assert "significance" not in results  # no comps in the run: no default baseline

@@ -18,6 +18,17 @@ def test_every_config_field_is_an_option(runner):
         assert hasattr(args, f"cfg_{name}"), name
 
 
+def test_help_lists_every_option(runner, capsys):
+    """--help renders (a '%' in a field's docs, e.g. PNC's "last 5%", must not break argparse's formatting)."""
+    with pytest.raises(SystemExit) as exit_:
+        runner.parse_args(["--help"])
+    assert exit_.value.code == 0
+    text = capsys.readouterr().out
+    for cls in (methods.config_class(m) for m in methods.METHODS):
+        for name, *_ in cli.flat_fields(cls):
+            assert "--" + name.replace("_", "-") in text, name
+
+
 def test_options_build_the_config(runner):
     args = runner.parse_args(["--learning-rate", "0.005", "--hidden-sizes", "64", "32", "--budget", "7",
                               "--reset-optimizer", "false", "--out", "/nonexistent/x"])

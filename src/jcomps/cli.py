@@ -78,7 +78,7 @@ def add_config_args(parser: argparse.ArgumentParser, classes) -> None:
             shown = " ".join(map(str, default)) if isinstance(default, tuple) else default
             nargs = "+" if typing.get_origin(tp) is tuple else None
             group.add_argument(flag, dest=f"cfg_{name}", type=_parser_for(tp), nargs=nargs, default=None,
-                               metavar=name.upper(), help=f"{doc} (default: {shown})")
+                               metavar=name.upper(), help=f"{doc} (default: {shown})".replace("%", "%%"))
 
 
 def _with_options(config, args: argparse.Namespace):

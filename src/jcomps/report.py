@@ -171,13 +171,14 @@ def default_baseline(methods_run) -> Optional[str]:
     return "comps" if "comps" in methods_run else None
 
 
-def env_steps_per_iteration(description: dict, family, method: str, values: Optional[dict]) -> int:
+def env_steps(description: dict, family, method: str, values: Optional[dict]) -> tuple[int, int]:
     """Env steps one iteration of ``method`` collects in the run ``description`` on its ``family`` (at grid point
-    ``values``)."""
+    ``values``), and those every task costs beyond its counted iterations (``Method.env_steps_per_task``)."""
     config = cli.config_from_dict(methods.default_config(method, family), description["methods"][method])
     for field, value in (values or {}).items():
         config = grids.replace_flat(config, field, value)
-    return methods.env_steps_per_iteration(method, family, config)
+    return (methods.env_steps_per_iteration(method, family, config),
+            methods.env_steps_per_task(method, family, config))
 
 
 def summarize(description: dict, raws: dict, baseline: Optional[str] = None) -> dict:
@@ -198,15 +199,20 @@ def summarize(description: dict, raws: dict, baseline: Optional[str] = None) -> 
         mean, se = _mean_se(its)
         bt = backward_transfer(raw)
         h_ret = raw.heldout.mean_return.mean(axis=2)  # [seeds, points, iterations + 1], averaged over tasks
-        steps = env_steps_per_iteration(description, family, method, values)
+        steps, task_steps = env_steps(description, family, method, values)
+        # Samples-to-success per seed and task: MAML+TL's iterations collect two batches, PPO's one; PNC's solved
+        # tasks add their compress phase (an unsolved task's budget count includes it already).
+        samples = its * steps + raw.task.solved * task_steps
+        samples_mean, samples_se = _mean_se(samples)
         entry = results["methods"][name] = {
             "iterations_to_success": its.astype(int).tolist(),
             "iterations_to_success_mean": mean.round(3).tolist(),
             "iterations_to_success_se": se.round(3).tolist(),
-            # Samples-to-success: MAML+TL's iterations collect two batches, PPO's one.
             "env_steps_per_iteration": int(steps),
-            "env_steps_to_success_mean": (mean * steps).round(1).tolist(),
-            "env_steps_to_success_se": (se * steps).round(1).tolist(),
+            "env_steps_per_task": int(task_steps),
+            "env_steps_to_success": samples.astype(np.int64).tolist(),
+            "env_steps_to_success_mean": samples_mean.round(1).tolist(),
+            "env_steps_to_success_se": samples_se.round(1).tolist(),
             "solved": raw.task.solved.astype(bool).tolist(),
             "mean_return_per_task": per_task_return.round(6).tolist(),
             "return_curves": _curves(ret, valid),
@@ -298,7 +304,7 @@ def _plots(results: dict, raws: dict, directory: str) -> list[str]:
 
     fig, ax = plt.subplots(figsize=(6, 4))
     for name, m in methods_.items():
-        band(ax, tasks, np.asarray(m["iterations_to_success"]) * m["env_steps_per_iteration"], name)
+        band(ax, tasks, np.asarray(m["env_steps_to_success"]), name)
     ax.set(xlabel="task", ylabel="env steps to success", title=f"Samples to success ({title})")
     integer_ticks(ax)
     ax.legend()

@@ -47,6 +47,9 @@ class Method(NamedTuple):
       learn_task: ``(State, task) -> (State, TaskMetrics)``.
       env_steps_per_iteration: env steps one iteration collects; None: one batch of ``config.ppo.num_trajectories``
         episodes of T_max steps (``env_steps_per_iteration(method)`` resolves it).
+      env_steps_per_task: env steps every task costs beyond its counted iterations (PNC's compress phase, which
+        runs after the threshold is met); a solved task's samples-to-success include them, an unsolved task's
+        count (the budget's iterations) already does.
     """
 
     name: str
@@ -55,6 +58,7 @@ class Method(NamedTuple):
     init: Callable[[jax.Array], Any]
     learn_task: Callable[[Any, Any], tuple[Any, TaskMetrics]]
     env_steps_per_iteration: Optional[int] = None
+    env_steps_per_task: int = 0
 
 
 def env_steps_per_iteration(method: Method) -> int:

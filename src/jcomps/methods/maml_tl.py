@@ -4,8 +4,9 @@ latest task; θ carries over to the next task (the paper's "Prior methods": MAML
 One iteration on task i:
 
 1. collect ``num_trajectories`` episodes with θ (the pre-update batch);
-2. inner step φ = θ + α ∇_θ J(θ), J(θ) = mean log π_θ(a|s) Â (the vanilla policy-gradient objective) with GAE
-   advantages from the value network (constants: the baseline), normalised like PPO's;
+2. inner step φ = θ + α ∇_θ J(θ), J(θ) = mean log π_θ(a|s) Â (the vanilla policy-gradient objective; or ProMP's
+   importance-weighted ``lvc`` objective, ``inner_objective``) with GAE advantages from the value network
+   (constants: the baseline), normalised like PPO's;
 3. collect ``num_trajectories`` episodes with φ (the post-update batch); the iteration's success rate is φ's:
    it is what iterations-to-success counts;
 4. unless the threshold is reached, ``num_updates`` Adam steps (``minibatch_size`` samples of the post-update
@@ -46,6 +47,12 @@ class MAMLTLConfig:
     iterations, 0.01 and 0.001 solved all (docs/design.md, "MAML+TL")."""
     first_order: bool = False
     """Stop the gradient through the inner step (first-order MAML)."""
+    inner_objective: str = "vpg"
+    """The inner step's objective J: ``vpg``, mean log π_θ(a|s) Â (Finn et al. 2017; its Hessian lacks the
+    ∇log π ∇log πᵀ Â term, and from the second outer step on θ is no longer the batch's behaviour policy), or
+    ``lvc``, mean π_θ(a|s)/π_b(a|s) Â with π_b the pre-update batch's behaviour policy (ProMP's low-variance
+    curvature objective, Rothfuss et al. 2019): the same step at the behaviour policy, the full curvature, and
+    importance-weighted as θ moves during the outer update."""
     reset_optimizer: bool = True
     """Start each task with a fresh Adam state (θ is always carried over)."""
 
@@ -54,6 +61,8 @@ class MAMLTLConfig:
 
     def __post_init__(self):
         check_field(self.inner_learning_rate > 0, "inner_learning_rate", self.inner_learning_rate, "a number > 0")
+        check_field(self.inner_objective in ("vpg", "lvc"), "inner_objective", self.inner_objective,
+                    "'vpg' or 'lvc'")
 
 
 class MAMLTLState(NamedTuple):
@@ -66,16 +75,22 @@ class MAMLTLState(NamedTuple):
 
 
 def inner_step(config: MAMLTLConfig, policy: dict, pre: dict) -> dict:
-    """φ = θ + α ∇_θ J(θ), J(θ) = mean log π_θ(a|s) Â over the valid samples of the flat pre-update batch ``pre``
-    (advantages normalised if ``ppo.normalize_advantages``). Differentiable in ``policy`` (second order) unless
-    ``first_order``."""
+    """φ = θ + α ∇_θ J(θ), J(θ) = mean log π_θ(a|s) Â (``inner_objective`` ``vpg``) or mean π_θ(a|s)/π_b(a|s) Â
+    (``lvc``, π_b's log-probabilities ``pre["log_prob"]``) over the valid samples of the flat pre-update batch
+    ``pre`` (advantages normalised if ``ppo.normalize_advantages``). Differentiable in ``policy`` (second order)
+    unless ``first_order``."""
     mask = pre["valid"]
     adv = pre["advantage"]
     if config.ppo.normalize_advantages:
         mean = masked_mean(adv, mask)
         adv = (adv - mean) / (jnp.sqrt(masked_mean(jnp.square(adv - mean), mask)) + 1e-8)
     adv = jax.lax.stop_gradient(adv)
-    objective = lambda p: masked_mean(networks.policy_log_prob(p, pre["obs"], pre["action"]) * adv, mask)  # noqa: E731
+    log_prob = lambda p: networks.policy_log_prob(p, pre["obs"], pre["action"])  # noqa: E731
+    if config.inner_objective == "lvc":
+        behaviour = jax.lax.stop_gradient(pre["log_prob"])
+        objective = lambda p: masked_mean(jnp.exp(log_prob(p) - behaviour) * adv, mask)  # noqa: E731
+    else:
+        objective = lambda p: masked_mean(log_prob(p) * adv, mask)  # noqa: E731
     grads = jax.grad(objective)(policy)
     if config.first_order:
         grads = jax.lax.stop_gradient(grads)

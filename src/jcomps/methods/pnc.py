@@ -252,4 +252,6 @@ def make(family: Family, config: PNCConfig = PNCConfig(), progress_fn: Optional[
                        state.task_index + 1)
         return new, TaskMetrics(iterations, out.solved, metrics)
 
-    return Method("pnc", config, family, init, learn_task)
+    # The compress phase's batches come after the threshold is met: charged to every solved task's samples.
+    return Method("pnc", config, family, init, learn_task,
+                  env_steps_per_task=n_compress * pcfg.num_trajectories * family.max_steps)
