@@ -212,7 +212,7 @@ def test_family_defaults_are_valid_configs():
 
 
 def test_method_ppo_starts_every_task_afresh(point):
-    # ``ppo`` re-initialises before each task (same draws as a fresh init), ``ppo_tl`` carries the parameters.
+    # ``ppo`` starts every task from its initial parameters (kept in the state), ``ppo_tl`` carries the parameters.
     from jcomps import methods
 
     config = methods.config_class("ppo")(ppo=dataclasses.replace(SMALL, budget=2))
@@ -225,6 +225,10 @@ def test_method_ppo_starts_every_task_afresh(point):
         leaves = zip(jax.tree.leaves(again.params), jax.tree.leaves(trained.params))
         same = all(np.array_equal(a, b) for a, b in leaves)
         assert same != carried, name
+        if not carried:
+            chex.assert_trees_all_equal(trained.fresh, state.params)  # the start, unchanged by learning
+            assert not all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(trained.params),
+                                                                 jax.tree.leaves(state.params)))
 
 
 def test_vanilla_surrogate_is_the_clipped_one_on_policy():
