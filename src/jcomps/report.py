@@ -177,8 +177,8 @@ def env_steps(description: dict, family, method: str, values: Optional[dict]) ->
     config = cli.config_from_dict(methods.default_config(method, family), description["methods"][method])
     for field, value in (values or {}).items():
         config = grids.replace_flat(config, field, value)
-    return (methods.env_steps_per_iteration(method, family, config),
-            methods.env_steps_per_task(method, family, config))
+    built = methods.make(method, family, config)  # once: it holds both figures
+    return methods.base.env_steps_per_iteration(built), built.env_steps_per_task
 
 
 def summarize(description: dict, raws: dict, baseline: Optional[str] = None) -> dict:

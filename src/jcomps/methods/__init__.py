@@ -105,10 +105,5 @@ def env_steps_per_iteration(name: str, family: Family, config=None) -> int:
     return base.env_steps_per_iteration(make(name, family, config))
 
 
-def env_steps_per_task(name: str, family: Family, config=None) -> int:
-    """Env steps every task of method ``name`` costs beyond its counted iterations (``Method.env_steps_per_task``)."""
-    return make(name, family, config).env_steps_per_task
-
-
 __all__ = ["METHODS", "Method", "REGISTRY", "Registered", "TaskMetrics", "config_class", "default_config",
-           "env_steps_per_iteration", "env_steps_per_task", "make"]
+           "env_steps_per_iteration", "make"]
