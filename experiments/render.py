@@ -6,8 +6,9 @@ Without options: every method (every grid point) of the run, its first seed, the
 numbered from 1 as in the report and the progress lines; a task after the last one learnt shows the current policy
 on a task it has not met yet. The policy is the one in the run's newest checkpoint (``params.policy``: the one the
 method starts its next task from and the evaluations read; for CoMPS, the meta-trained policy), with its
-observation normalisation. It acts as it learnt and was measured, sampling from its Gaussian (``--mean``: the mean
-action). ``--episodes`` episodes are run on the task (default: the method's trajectories per iteration); the
+observation normalisation; PEARL's acts on a learnt task with a latent drawn from the posterior of that task's
+context (its replay buffer). It acts as it learnt and was measured, sampling from its distribution (``--mean``:
+the mean action). ``--episodes`` episodes are run on the task (default: the method's trajectories per iteration); the
 success rate printed is theirs, measured as the learner measures it, and the viewer shows the first.
 
 MuJoCo families: an HTML page per task, ``RUN_DIR/render/<entry>_seed<S>_task<N>.html``, written by brax's own
@@ -27,20 +28,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jcomps import checkpoint, cli, continual, envs, experiment, methods, networks, report
+from jcomps import checkpoint, cli, continual, envs, experiment, methods, report
 from jcomps import grid as grids
 
 
-def _episodes(family, policy, task, rng, episodes: int, mean):
+def _episodes(family, act, policy, task, rng, episodes: int, mean):
     """``episodes`` fresh episodes of ``task``: the first one's simulator states (T_max + 1), every reward and
-    success indicator [T, episodes] and the first two observation components [T + 1, episodes, 2]. ``mean``
-    (f32[], 0 or 1; traced, so both modes share one compilation) replaces the policy's noise by zeros."""
+    success indicator [T, episodes] and the first two observation components [T + 1, episodes, 2]. ``act`` is the
+    method's ``acting.ActFn``; ``mean`` (f32[], 0 or 1; traced, so both modes share one compilation) replaces the
+    policy's noise by zeros (the mean action; PEARL's tanh of its mean)."""
     reset_rng, step_rng = jax.random.split(rng)
     state = jax.vmap(family.reset, (0, None))(jax.random.split(reset_rng, episodes), task)
     step = jax.vmap(family.step, (0, 0, None))
 
     def body(state, noise):
-        action, _ = networks.action_from_noise(policy, state.obs, noise * (1.0 - mean))
+        action, _ = act(policy, state.obs, noise * (1.0 - mean))
         nxt = step(state, action, task)
         return nxt, (jax.tree.map(lambda x: x[0], nxt.sim), nxt.reward, nxt.success, nxt.obs[:, :2])
 
@@ -64,7 +66,7 @@ def _specs(description: dict, family) -> dict:
 
 
 def _policies(run_dir: str, description: dict, family, spec, warn):
-    """The members' policies of program ``spec`` from its newest checkpoint, and the number of tasks learnt."""
+    """The members' states of program ``spec`` from its newest checkpoint, and the number of tasks learnt."""
     run = description["run"]
     found = checkpoint.read_latest(os.path.join(run_dir, "checkpoints", spec.directory), warn)
     if found is None:
@@ -85,7 +87,7 @@ def _policies(run_dir: str, description: dict, family, spec, warn):
     states = checkpoint.unflatten(like, tree["states"])
     chunk = min(run["chunk_tasks"], run["num_tasks"])
     learnt = min(int(tree["counters"]["next_chunk"]) * chunk, run["num_tasks"])
-    return states.params.policy, learnt
+    return states, learnt
 
 
 def _plot_point_goal(path, xy, goal, title):
@@ -130,22 +132,29 @@ def render(run_dir: str, methods_=None, seed=None, tasks=None, mean=False, episo
     os.makedirs(out_dir, exist_ok=True)
     warn = lambda message: print_fn(f"warning: {message}")  # noqa: E731
     unit = "m/s" if family.name == "cheetah_vel" else "°"
-    episode_fn = jax.jit(_episodes, static_argnums=(0, 4))
+    episode_fn = jax.jit(_episodes, static_argnums=(0, 1, 5))
     written = []
     for m in chosen:
         config = specs[m][0].config
-        n_episodes = episodes or config.ppo.num_trajectories
+        n_episodes = episodes or methods.collection(config).num_trajectories
+        method = methods.make(m, family, config)
+        act = methods.base.act_fn(method)
         for spec in specs[m]:
-            policies, learnt = _policies(run_dir, description, family, spec, warn)
+            states, learnt = _policies(run_dir, description, family, spec, warn)
             if learnt == 0:
                 raise experiment.RunError(f"{run_dir}: {spec.label} has learnt no task yet")
             for p, point in enumerate(spec.points):
                 member = p * run["seeds"] + (seed - run["seed"])
-                policy = jax.tree.map(lambda x: jnp.asarray(x[member]), policies)
+                state = jax.tree.map(lambda x: jnp.asarray(x[member]), states)
                 for t in tasks or [learnt]:
                     task = envs.task_at(family, t - 1, run["sequence"], seed)
                     rng = jax.random.fold_in(jax.random.PRNGKey(seed), t)
-                    sims, rewards, success, xy = episode_fn(family, policy, task, rng, n_episodes, jnp.float32(mean))
+                    # the policy for task t (PEARL's latent from task t's replay buffer); a task not learnt yet
+                    # meets the policy after the last one learnt
+                    policy = (methods.base.policy_for(method, state, jnp.int32(t - 1), jax.random.fold_in(rng, 1))
+                              if t <= learnt else state.params.policy)
+                    sims, rewards, success, xy = episode_fn(family, act, policy, task, rng, n_episodes,
+                                                            jnp.float32(mean))
                     rate = float(family.success_rate(success))
                     ret = float(jnp.mean(jnp.sum(rewards, axis=0)))
                     note = "" if t <= learnt else f", not learnt yet (the policy after task {learnt})"

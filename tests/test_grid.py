@@ -127,11 +127,11 @@ def test_progress_behind_is_the_member_still_iterating(console):
     assert "behind: ppo[learning_rate=0.0001] seed 0 (task 1)" in lines[-1]
 
 
-@pytest.mark.parametrize("name", ["ppo_tl", "comps", "maml_tl", "pnc"])
+@pytest.mark.parametrize("name", ["ppo_tl", "comps", "maml_tl", "pnc", "pearl"])
 def test_every_traced_field_traces(name):
     """Every field a config declares TRACED can be a traced grid axis of the chunk and held-out programs (traced
     only, not compiled)."""
-    config = methods.config_class(name)(**({"max_tasks": 2} if name == "comps" else {}))
+    config = methods.config_class(name)(**({"max_tasks": 2} if name in ("comps", "pearl") else {}))
     traced = tuple(sorted(grid.traced_fields(type(config))))
     program = experiment.Programs().get(name, "point_goal", config, continual.EvalConfig(), 1, 1, traced)
     abstract = lambda tree: jax.tree.map(  # noqa: E731

@@ -5,7 +5,7 @@ Array convention (everywhere in jcomps): trajectories are time-major, ``[T, B, .
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -38,14 +38,22 @@ class Trajectory(NamedTuple):
     last_obs: jax.Array
 
 
-def rollout(family: Family, policy: dict, task, rng: jax.Array, num_envs: int) -> Trajectory:
-    """Runs ``num_envs`` fresh episodes of ``task`` for ``family.max_steps`` steps with the Gaussian ``policy``."""
+ActFn = Callable[[Any, jax.Array, jax.Array], tuple[jax.Array, jax.Array]]
+"""``act(policy, obs f32[..., obs_size], noise f32[..., A]) -> (action f32[..., A], log_prob f32[...])``: a policy's
+action for standard-normal ``noise`` (``networks.action_from_noise`` for the Gaussian policies of the PPO-based
+methods; a method with another policy, like PEARL's tanh-Gaussian, brings its own: ``Method.act``)."""
+
+
+def rollout(family: Family, policy: Any, task, rng: jax.Array, num_envs: int,
+            act: ActFn = networks.action_from_noise) -> Trajectory:
+    """Runs ``num_envs`` fresh episodes of ``task`` for ``family.max_steps`` steps with ``policy`` (default: a
+    Gaussian policy; ``act`` makes the actions of any other kind)."""
     reset_rng, step_rng = jax.random.split(rng)
     state = jax.vmap(family.reset, (0, None))(jax.random.split(reset_rng, num_envs), task)
     step = jax.vmap(family.step, (0, 0, None))
 
     def body(state, noise):
-        action, log_prob = networks.action_from_noise(policy, state.obs, noise)
+        action, log_prob = act(policy, state.obs, noise)
         nxt = step(state, action, task)
         valid = 1.0 - state.done
         done = nxt.done * valid

@@ -184,3 +184,80 @@ def sequence_bytes(num_slots: int, T: int, num_skilled: int, num_offpolicy: int,
     """Bytes of ``SequenceStores`` at these sizes (float32 everywhere)."""
     shapes = jax.eval_shape(lambda: sequence_init(num_slots, T, num_skilled, num_offpolicy, obs_size, action_size))
     return sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(shapes))
+
+
+class TransitionStore(NamedTuple):
+    """A replay buffer per task slot (PEARL): a ring of ``capacity`` transitions for each of ``num_slots`` slots.
+
+    Leaves have leading axes [num_slots, capacity]: ``obs``, ``next_obs`` f32[..., obs_size]; ``action``
+    f32[..., A]; ``reward``, ``done`` (1 where the transition terminated the episode; reaching T_max is a
+    truncation and keeps ``done`` 0, so its next observation bootstraps), ``valid`` (1 for a step taken by a live
+    episode) f32[...]; ``count`` i32[num_slots], transitions ever written to each slot. A slot never receives
+    another slot's data: writes and samples take the slot index.
+    """
+
+    obs: jax.Array
+    action: jax.Array
+    reward: jax.Array
+    next_obs: jax.Array
+    done: jax.Array
+    valid: jax.Array
+    count: jax.Array
+
+
+def transitions_init(num_slots: int, capacity: int, obs_size: int, action_size: int) -> TransitionStore:
+    """Empty replay buffers: ``num_slots`` slots of ``capacity`` transitions."""
+    z = lambda *s: jnp.zeros((num_slots, capacity) + s, jnp.float32)  # noqa: E731
+    return TransitionStore(z(obs_size), z(action_size), z(), z(obs_size), z(), z(), jnp.zeros((num_slots,), jnp.int32))
+
+
+def transitions_of(traj: Trajectory) -> dict:
+    """The T·B transitions of a batch ``traj`` ([T, B, ...]), flattened time-major: the next observation of step
+    t is the observation at t + 1, and at T_max the observation reached (``last_obs``: a truncation)."""
+    next_obs = jnp.concatenate([traj.obs[1:], traj.last_obs[None]], axis=0)
+    flat = {"obs": traj.obs, "action": traj.action, "reward": traj.reward, "next_obs": next_obs, "done": traj.done,
+            "valid": traj.valid}
+    return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), flat)
+
+
+def transitions_add(store: TransitionStore, slot: jax.Array, traj: Trajectory) -> TransitionStore:
+    """Writes the batch ``traj`` into slot ``slot``'s ring, overwriting its oldest transitions when full. The
+    capacity must be a multiple of the batch's T·B (``transition_capacity``), so a batch is one block.
+    Transitions holding NaN or infinity are stored as zeros with ``valid`` 0 (never sampled)."""
+    ok = finite_trajectories(traj)
+    flat = transitions_of(_zero_nonfinite(traj, ok))
+    n = flat["reward"].shape[0]
+    capacity = store.reward.shape[1]
+    if capacity % n:
+        raise ValueError(f"buffer capacity {capacity} is not a multiple of the batch's {n} transitions")
+    flat["valid"] = flat["valid"] * jnp.broadcast_to(ok, traj.valid.shape).reshape(-1)
+    pos = store.count[slot] % capacity
+
+    def put(buf, x):
+        start = (slot, pos) + (0,) * (buf.ndim - 2)
+        return jax.lax.dynamic_update_slice(buf, x[None].astype(buf.dtype), start)
+
+    fields = {k: put(getattr(store, k), v) for k, v in flat.items()}
+    return TransitionStore(**fields, count=store.count.at[slot].add(n))
+
+
+def transition_capacity(size: int, batch: int) -> int:
+    """The ring size for a requested ``size``: whole batches of ``batch`` transitions, at least one."""
+    return max(1, size // batch) * batch
+
+
+def transitions_sample(store: TransitionStore, slot: jax.Array, num: int, rng: jax.Array) -> tuple[dict, jax.Array]:
+    """``num`` transitions of slot ``slot`` drawn uniformly (with replacement) from those written and still held,
+    and f32[num], 1 where the row is a valid transition (0 for an empty slot or a step after a termination)."""
+    capacity = store.reward.shape[1]
+    held = jnp.minimum(store.count[slot], capacity)
+    idx = jax.random.randint(rng, (num,), 0, jnp.maximum(held, 1))
+    rows = {k: getattr(store, k)[slot][idx] for k in ("obs", "action", "reward", "next_obs", "done", "valid")}
+    mask = rows.pop("valid") * (held > 0).astype(jnp.float32)
+    return rows, mask
+
+
+def transitions_bytes(num_slots: int, capacity: int, obs_size: int, action_size: int) -> int:
+    """Bytes of a ``TransitionStore`` at these sizes."""
+    shapes = jax.eval_shape(lambda: transitions_init(num_slots, capacity, obs_size, action_size))
+    return sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(shapes))

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 from jcomps import acting, ppo
 from jcomps.numerics import check_field, concrete_max
 from jcomps.progress import ProgressFn, with_fields
+from jcomps.methods import base
 from jcomps.methods.base import Method, TaskMetrics
 
 def check_capacity(method: Method, num_tasks: int, start=0) -> None:
@@ -135,7 +136,8 @@ class ChunkMetrics(NamedTuple):
 
 
 def _mean_return(method: Method, policy, task, rng):
-    traj = acting.rollout(method.family, policy, task, rng, method.config.ppo.num_trajectories)
+    traj = acting.rollout(method.family, policy, task, rng, base.collection(method.config).num_trajectories,
+                          act=base.act_fn(method))
     return jnp.mean(jnp.sum(traj.reward, axis=0))
 
 
@@ -159,8 +161,12 @@ def run_chunk(method: Method, eval_config: EvalConfig, state, sequence, start, c
         new_state, metrics = learn(state, task_at(i))
         prev = i - 1 - jnp.arange(k)
         keys = jax.vmap(lambda d: jax.random.fold_in(jax.random.fold_in(eval_key, i), d))(jnp.arange(k))
-        returns = jax.vmap(lambda j, key: _mean_return(method, new_state.params.policy, task_at(jnp.maximum(j, 0)),
-                                                       key))(prev, keys)
+        def back(j, key):
+            j = jnp.maximum(j, 0)  # the rollout keeps ``key`` (the same stream as before policy_for existed)
+            policy = base.policy_for(method, new_state, j, jax.random.fold_in(key, 7))
+            return _mean_return(method, policy, task_at(j), key)
+
+        returns = jax.vmap(back)(prev, keys)
         return new_state, ChunkMetrics(metrics, returns, prev >= 0)
 
     def body(state, c):
@@ -191,18 +197,28 @@ class HeldoutMetrics(NamedTuple):
 
 def heldout_adaptation(method: Method, eval_config: EvalConfig, state, heldout_tasks, rng) -> HeldoutMetrics:
     """Meta-test: PPO from the state's policy on every held-out task for ``eval_config.heldout_run`` iterations,
-    no early stop, nothing kept (the state is not changed): the return curve and iterations-to-success."""
+    no early stop, nothing kept (the state is not changed): the return curve and iterations-to-success. A method
+    with its own meta-test (``Method.adapt``; PEARL's adapts by inference) runs that instead of PPO."""
+    curve = eval_config.heldout_iterations + 1
+    measured = eval_config.heldout_budget > 0
+    n = jax.tree.leaves(heldout_tasks)[0].shape[0]
+    if method.adapt is not None:
+        def own(task, key):
+            returns, success = method.adapt(state, task, key, eval_config.heldout_run)
+            reached = success >= method.family.success_threshold
+            first = jnp.where(jnp.any(reached), jnp.argmax(reached) + 1, eval_config.heldout_run)
+            return HeldoutMetrics(returns[:curve], success[:curve], jnp.where(measured, first, 0).astype(jnp.int32),
+                                  jnp.any(reached) & measured)
+
+        return jax.vmap(own)(heldout_tasks, jax.random.split(rng, n))
     config = method.config.ppo
     optimizer = ppo.make_optimizer(config)
     params = state.params
-    curve = eval_config.heldout_iterations + 1
 
     def one(task, key):
         out = ppo.rl_step(config, method.family, params, optimizer.init(params), task, key, stop_at_threshold=False,
                           budget=eval_config.heldout_run)
-        measured = eval_config.heldout_budget > 0
         return HeldoutMetrics(out.metrics.mean_return[:curve], out.metrics.success_rate[:curve],
                               jnp.where(measured, out.iterations, 0).astype(jnp.int32), out.solved & measured)
 
-    n = jax.tree.leaves(heldout_tasks)[0].shape[0]
     return jax.vmap(one)(heldout_tasks, jax.random.split(rng, n))

@@ -382,8 +382,8 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
     member_names = [f"{points[p].key} seed {s}" for p, s in zip(member_point, member_seed)]
     progress_fn({"event": "start", "program": name, "family": run.family, "sequence": run.sequence,
                  "num_tasks": run.num_tasks, "seeds": run.seeds, "grid_points": len(points), "padding": padded - real,
-                 "devices": devices, "budget": spec.config.ppo.budget_for(family), "chunk": program.chunk,
-                 "start_task": next_chunk * program.chunk, "members": member_names})
+                 "devices": devices, "budget": methods.collection(spec.config).budget_for(family),
+                 "chunk": program.chunk, "start_task": next_chunk * program.chunk, "members": member_names})
     start_time = time.time()
     if next_chunk == 0:
         out_h = program.heldout(states, heldout_tasks, program.put(eval_keys(member_seed, 1000)), hparams)

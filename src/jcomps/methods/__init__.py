@@ -16,7 +16,9 @@ The paper's other continual baselines:
 
 - ``maml_tl``: on-policy MAML in online mode, meta-training on the latest task only (MAML+TL);
 - ``pnc``: Progress & Compress: PPO in an active column with lateral adaptors from a frozen knowledge base, then
-  distillation into the knowledge base under online EWC.
+  distillation into the knowledge base under online EWC;
+- ``pearl``: PEARL, the off-policy meta-RL baseline: SAC with a probabilistic context encoder, a replay buffer per
+  task slot (its config has no PPO part: the family's PPO settings do not apply to it).
 """
 
 from __future__ import annotations
@@ -26,8 +28,8 @@ from typing import Any, Callable, NamedTuple, Optional
 
 from jcomps import meta, ppo
 from jcomps.envs.base import Family
-from jcomps.methods import base, comps, maml_tl, pnc, ppo_tl
-from jcomps.methods.base import Method, TaskMetrics
+from jcomps.methods import base, comps, maml_tl, pearl, pnc, ppo_tl
+from jcomps.methods.base import Method, TaskMetrics, collection
 from jcomps.progress import ProgressFn
 
 
@@ -60,6 +62,7 @@ REGISTRY: dict[str, Registered] = {
     "gmps_ppo_is_x2": Registered(comps.CoMPSConfig(warm_start=False, num_skilled=40), comps.named("gmps_ppo_is_x2")),
     "maml_tl": Registered(maml_tl.MAMLTLConfig(), maml_tl.make),
     "pnc": Registered(pnc.PNCConfig(), pnc.make, {"hidden_sizes": pnc.PNCConfig().ppo.hidden_sizes}),
+    "pearl": Registered(pearl.PEARLConfig(), pearl.make),
 }
 METHODS = tuple(REGISTRY)
 
@@ -80,6 +83,8 @@ def default_config(name: str, family: Family | str):
     settings (``jcomps.ppo.FAMILY_DEFAULTS``) for the RL step, apart from the fields that define the method's RL
     step (``Registered.rl_step``)."""
     entry = _registered(name)
+    if not hasattr(entry.default, "ppo"):
+        return entry.default
     family_name = family if isinstance(family, str) else family.name
     rl = dataclasses.replace(ppo.family_config(family_name, entry.default.ppo), **entry.rl_step)
     return dataclasses.replace(entry.default, ppo=rl)
@@ -105,5 +110,5 @@ def env_steps_per_iteration(name: str, family: Family, config=None) -> int:
     return base.env_steps_per_iteration(make(name, family, config))
 
 
-__all__ = ["METHODS", "Method", "REGISTRY", "Registered", "TaskMetrics", "config_class", "default_config",
+__all__ = ["METHODS", "Method", "collection", "REGISTRY", "Registered", "TaskMetrics", "config_class", "default_config",
            "env_steps_per_iteration", "make"]

@@ -19,6 +19,7 @@ from typing import Any, Callable, NamedTuple, Optional
 
 import jax
 
+from jcomps import networks
 from jcomps.ppo import IterationMetrics
 
 
@@ -50,6 +51,14 @@ class Method(NamedTuple):
       env_steps_per_task: env steps every task costs beyond its counted iterations (PNC's compress phase, which
         runs after the threshold is met); a solved task's samples-to-success include them, an unsolved task's
         count (the budget's iterations) already does.
+      act: how the method's policies act (``jcomps.acting.ActFn``); None: the Gaussian policies of the PPO-based
+        methods (``networks.action_from_noise``).
+      policy_for: ``(state, slot i32[], rng) -> policy``, the policy that acts on the task learnt in ``slot``
+        (backward transfer, replays); None: ``state.params.policy`` on every task. PEARL's infers its latent from
+        the slot's replay buffer.
+      adapt: ``(state, task, rng, iterations) -> (mean_return f32[iterations], success_rate f32[iterations])``,
+        the method's own meta-test on a held-out task, nothing kept; None: PPO from ``state.params``
+        (``continual.heldout_adaptation``).
     """
 
     name: str
@@ -59,10 +68,36 @@ class Method(NamedTuple):
     learn_task: Callable[[Any, Any], tuple[Any, TaskMetrics]]
     env_steps_per_iteration: Optional[int] = None
     env_steps_per_task: int = 0
+    act: Optional[Callable] = None
+    policy_for: Optional[Callable] = None
+    adapt: Optional[Callable] = None
+
+
+def collection(config) -> Any:
+    """The part of a method config that holds ``num_trajectories`` (episodes per iteration) and ``budget`` (with
+    ``budget_for(family)``): its ``ppo`` field for the PPO-based methods, the config itself otherwise (PEARL)."""
+    return getattr(config, "ppo", config)
+
+
+def budget(method: Method) -> int:
+    """Iterations per task N of ``method`` on its family."""
+    return collection(method.config).budget_for(method.family)
 
 
 def env_steps_per_iteration(method: Method) -> int:
     """Env steps one iteration of ``method`` collects (MAML+TL collects two batches per iteration)."""
     if method.env_steps_per_iteration is not None:
         return method.env_steps_per_iteration
-    return method.config.ppo.num_trajectories * method.family.max_steps
+    return collection(method.config).num_trajectories * method.family.max_steps
+
+
+def act_fn(method: Method):
+    """The method's ``acting.ActFn``."""
+    return networks.action_from_noise if method.act is None else method.act
+
+
+def policy_for(method: Method, state, slot, rng):
+    """The policy of ``state`` that acts on the task learnt in ``slot`` (``Method.policy_for``)."""
+    if method.policy_for is None:
+        return state.params.policy
+    return method.policy_for(state, slot, rng)

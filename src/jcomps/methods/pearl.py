@@ -1,0 +1,402 @@
+"""PEARL (Rakelly et al. 2019) in the continual setting: SAC with a probabilistic context encoder.
+
+The pieces, and where they come from:
+
+- **SAC** (Haarnoja et al. 2018): brax's (``brax.training.agents.sac``): its twin-Q and tanh-Gaussian policy
+  networks (``make_sac_networks``: flax MLPs, ReLU, a ``NormalTanhDistribution`` with softplus scale), and its
+  three losses (``make_losses``: the critic's soft Bellman target with the minimum of the two target critics, the
+  actor's α log π − min Q, the temperature's). They are pure functions of a transition batch, so PEARL's latent
+  enters as part of the observation and the encoder's gradient flows through the critic loss unchanged. Rewritten
+  here: only the Polyak average (one line) and the masks (a row that is not a valid transition is passed to brax's
+  critic loss as a "truncation", which zeroes its error).
+- **The context encoder**: an MLP (brax's ``networks.MLP``) of each transition (s, a, r[, s']) to a Gaussian
+  factor (μ_n, σ²_n = softplus); the posterior q(z|c) is their product, N(σ² Σ μ_n/σ²_n, 1/Σ 1/σ²_n) (PEARL's
+  ``_product_of_gaussians``), permutation-invariant; a KL(q(z|c) ‖ N(0, I)) term weighted by ``kl_weight``
+  regularises it. z is drawn by reparameterisation, fed to policy and critics (concatenated to the observation),
+  and trained through the critic loss; the actor and the target see z with its gradient stopped (as in PEARL).
+
+**The continual protocol.** Tasks arrive one at a time. A replay buffer per task slot (``buffers.TransitionStore``,
+``buffer_size`` transitions per task, a ring) keeps every task's data; slot i is task i of the sequence. Each
+iteration on task i:
+
+1. draws z from the posterior of a context of ``context_size`` transitions sampled from slot i (from the prior
+   N(0, I) while slot i is empty, at the task's first iteration), one z per episode;
+2. collects ``num_trajectories`` episodes of T_max steps on task i with it (the same env steps per iteration as
+   the PPO methods), whose success rate is the iteration's (iterations-to-success as PPO's: the first iteration
+   at or above the threshold; no update follows it);
+3. adds them to slot i;
+4. makes ``num_updates`` gradient steps, each on ``meta_batch`` task slots drawn uniformly from the slots seen so
+   far (i included), with a context of ``context_size`` and a batch of ``minibatch_size`` transitions per slot.
+
+Everything is fixed-size arrays and ``lax`` loops: vmapped over seeds and checkpointed like every method (the
+buffers are part of the state, so a resume is exact).
+
+Evaluations: ``policy_for(state, slot)`` acts with z from the posterior of slot's context (backward transfer);
+``adapt`` is PEARL's meta-test on a held-out task, adaptation by inference with no gradient step: iteration 0 acts
+with z from the prior, iteration n with z from the posterior of a context sampled from iteration n − 1's batch.
+
+IterationMetrics fields: ``policy_loss`` is the actor loss, ``value_loss`` the critic loss, ``entropy`` the mean
+−log π of the actor's samples, ``approx_kl`` the mean KL(q(z|c) ‖ N(0, I)) (all means over the iteration's steps).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, ClassVar, NamedTuple, Optional
+
+import jax
+import jax.numpy as jnp
+import optax
+from brax.training import networks as brax_networks
+from brax.training import types as brax_types
+from brax.training.agents.sac import losses as sac_losses
+from brax.training.agents.sac import networks as sac_networks
+
+from jcomps import acting, buffers, networks, ppo
+from jcomps.envs.base import Family
+from jcomps.methods.base import Method, TaskMetrics
+from jcomps.numerics import all_finite, check_field, keep_if_finite
+from jcomps.progress import ProgressFn, with_fields
+
+
+@dataclasses.dataclass(frozen=True)
+class PEARLConfig:
+    """Configuration of PEARL (defaults: oyster's ``configs/default.py`` where it has the field)."""
+
+    num_trajectories: int = 20
+    """Episodes of T_max steps collected per iteration (as the PPO methods, so iterations compare)."""
+    budget: Optional[int] = None
+    """Iterations per task N; None takes the family's paper value."""
+    num_updates: int = 64
+    """Gradient steps per iteration (a tuning axis; oyster makes 2,000 per 5 tasks' collection: docs/design.md)."""
+    minibatch_size: int = 256
+    """Transitions per task slot in each gradient step's RL batch (oyster: batch_size 256)."""
+    meta_batch: int = 4
+    """Task slots per gradient step, drawn uniformly from those seen (oyster: 16 tasks of its training set)."""
+    context_size: int = 64
+    """Transitions in a context (oyster: embedding_batch_size 64)."""
+    latent_size: int = 5
+    """Size of the latent z (oyster: 5)."""
+    kl_weight: float = 0.1
+    """Weight of KL(q(z|c) ‖ N(0, I)) in the encoder's loss (oyster: kl_lambda 0.1)."""
+    hidden_sizes: tuple[int, ...] = (300, 300, 300)
+    """Hidden layers of the policy and of each critic (oyster: net_size 300, three layers)."""
+    encoder_hidden_sizes: tuple[int, ...] = (200, 200, 200)
+    """Hidden layers of the context encoder (oyster: 200, three layers)."""
+    learning_rate: float = 3e-4
+    """Adam learning rate of policy, critics, encoder and temperature (oyster: 3e-4 for each)."""
+    discount: float = 0.99
+    """Discount factor γ."""
+    tau: float = 0.005
+    """Polyak rate of the target critics (oyster: soft_target_tau 0.005)."""
+    reward_scale: float = 5.0
+    """Rewards are multiplied by this in the soft Bellman target (oyster: 5; with α = 1 it sets the entropy's
+    weight)."""
+    alpha: float = 1.0
+    """Entropy temperature α when ``auto_alpha`` is off (oyster: 1, with the reward scale)."""
+    auto_alpha: bool = False
+    """Learn α towards the target entropy −A/2 (brax's SAC), starting from ``alpha``."""
+    context_next_obs: bool = True
+    """Transitions in the context include s' (the issue's (s, a, r, s'); oyster's default leaves it out)."""
+    buffer_size: int = 50_000
+    """Transitions kept per task slot (a ring, rounded down to whole iterations' batches, at least one)."""
+    max_tasks: int = 40
+    """Task slots of the replay buffers: the longest sequence the method can learn."""
+
+    TRACED: ClassVar[frozenset] = frozenset({"learning_rate", "discount", "tau", "reward_scale", "kl_weight",
+                                             "alpha"})
+    """Fields that may hold traced scalars (a hyperparameter-grid axis)."""
+
+    def __post_init__(self):
+        positive_int = "an integer >= 1"
+        for name in ("num_trajectories", "num_updates", "minibatch_size", "meta_batch", "context_size",
+                     "latent_size", "buffer_size", "max_tasks"):
+            check_field(getattr(self, name) >= 1, name, getattr(self, name), positive_int)
+        check_field(self.budget is None or self.budget >= 1, "budget", self.budget, "None or an integer >= 1")
+        for name in ("hidden_sizes", "encoder_hidden_sizes"):
+            sizes = getattr(self, name)
+            check_field(len(sizes) >= 1 and all(h >= 1 for h in sizes), name, sizes, "one or more positive widths")
+        check_field(self.learning_rate > 0, "learning_rate", self.learning_rate, "a number > 0")
+        check_field(0 < self.discount <= 1, "discount", self.discount, "a number in (0, 1]")
+        check_field(0 < self.tau <= 1, "tau", self.tau, "a number in (0, 1]")
+        check_field(self.reward_scale > 0, "reward_scale", self.reward_scale, "a number > 0")
+        check_field(self.kl_weight >= 0, "kl_weight", self.kl_weight, "a number >= 0")
+        check_field(self.alpha > 0, "alpha", self.alpha, "a number > 0")
+
+    def budget_for(self, family: Family) -> int:
+        """Iterations per task for ``family``."""
+        return family.default_budget if self.budget is None else self.budget
+
+
+class PEARLState(NamedTuple):
+    """params: ActorCriticParams(policy={'net': the policy network's parameters, 'z': f32[latent] drawn from the
+    posterior of the last task learnt}, value=()); q, target_q: the twin critics and their Polyak averages;
+    encoder: the context encoder; policy_opt, critic_opt (critics and encoder), alpha_opt: Adam states;
+    log_alpha: f32[]; replay: a TransitionStore per task slot; rng; task_index: i32[], tasks learnt so far."""
+
+    params: networks.ActorCriticParams
+    q: Any
+    target_q: Any
+    encoder: Any
+    policy_opt: Any
+    critic_opt: Any
+    alpha_opt: Any
+    log_alpha: jax.Array
+    replay: buffers.TransitionStore
+    rng: jax.Array
+    task_index: jax.Array
+
+
+class Networks(NamedTuple):
+    """The static parts: brax's SAC networks (policy and twin critics on [obs, z]) and the encoder MLP."""
+
+    sac: Any
+    encoder: Any
+    context_size: int
+
+
+def make_networks(config: PEARLConfig, family: Family) -> Networks:
+    """brax's SAC networks on observations extended by z, and the context encoder."""
+    sac = sac_networks.make_sac_networks(family.obs_size + config.latent_size, family.action_size,
+                                         hidden_layer_sizes=config.hidden_sizes)
+    width = 2 * family.obs_size + family.action_size + 1 if config.context_next_obs else (
+        family.obs_size + family.action_size + 1)
+    encoder = brax_networks.MLP(layer_sizes=(*config.encoder_hidden_sizes, 2 * config.latent_size),
+                                activation=jax.nn.relu)
+    return Networks(sac, encoder, width)
+
+
+def with_latent(obs: jax.Array, z: jax.Array) -> jax.Array:
+    """[obs, z] over the last axis; z f32[latent] or with leading axes that broadcast against obs's."""
+    z = jnp.broadcast_to(z, obs.shape[:-1] + z.shape[-1:])
+    return jnp.concatenate([obs, z], axis=-1)
+
+
+def make_act(nets: Networks):
+    """The ``acting.ActFn`` of PEARL's policies ({'net', 'z'}): tanh(loc + scale·noise), and its log-probability
+    with the tanh correction (brax's ``NormalTanhDistribution``)."""
+    dist = nets.sac.parametric_action_distribution
+
+    def act(policy: dict, obs: jax.Array, noise: jax.Array):
+        params = nets.sac.policy_network.apply(None, policy["net"], with_latent(obs, policy["z"]))
+        loc, scale = jnp.split(params, 2, axis=-1)
+        pre = loc + (jax.nn.softplus(scale) + dist._min_std) * dist._var_scale * noise
+        return jnp.tanh(pre), dist.log_prob(params, pre)
+
+    return act
+
+
+def context_features(config: PEARLConfig, rows: dict) -> jax.Array:
+    """The encoder's input per transition: [s, a, r] or [s, a, r, s'] (``context_next_obs``)."""
+    parts = [rows["obs"], rows["action"], rows["reward"][..., None]]
+    if config.context_next_obs:
+        parts.append(rows["next_obs"])
+    return jnp.concatenate(parts, axis=-1)
+
+
+def product_of_gaussians(mu: jax.Array, var: jax.Array, mask: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """The product of the Gaussian factors N(mu_n, var_n) (f32[n, latent]) of the rows where ``mask`` f32[n] is 1,
+    normalised: var = 1 / Σ 1/var_n, mu = var Σ mu_n/var_n. With no row, the prior N(0, I)."""
+    precision = mask[:, None] / jnp.maximum(var, 1e-7)
+    total = jnp.sum(precision, axis=0)
+    any_row = jnp.sum(mask) > 0
+    post_var = jnp.where(any_row, 1.0 / jnp.maximum(total, 1e-12), 1.0)
+    post_mu = jnp.where(any_row, post_var * jnp.sum(precision * mu, axis=0), 0.0)
+    return post_mu, post_var
+
+
+def posterior(config: PEARLConfig, nets: Networks, encoder_params, context: jax.Array,
+              mask: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """q(z | c): mean and variance f32[latent] of the product of the encoder's per-transition factors over the
+    context f32[n, width] (rows with ``mask`` 0 left out)."""
+    out = nets.encoder.apply(encoder_params, context)
+    mu, raw = jnp.split(out, 2, axis=-1)
+    return product_of_gaussians(mu, jax.nn.softplus(raw), mask)
+
+
+def kl_to_prior(mu: jax.Array, var: jax.Array) -> jax.Array:
+    """KL(N(mu, var) ‖ N(0, I)) summed over the last axis; 0 when the posterior is the prior."""
+    return 0.5 * jnp.sum(var + jnp.square(mu) - 1.0 - jnp.log(var), axis=-1)
+
+
+def polyak(target, online, tau):
+    """target ← (1 − τ)·target + τ·online, leaf by leaf."""
+    return jax.tree.map(lambda t, o: (1.0 - tau) * t + tau * o, target, online)
+
+
+def sample_context(config: PEARLConfig, replay: buffers.TransitionStore, slot, rng) -> tuple[jax.Array, jax.Array]:
+    """``context_size`` transitions of ``slot`` as the encoder's input f32[n, width] and their mask."""
+    rows, mask = buffers.transitions_sample(replay, slot, config.context_size, rng)
+    return context_features(config, rows), mask
+
+
+def _transitions(obs, action, reward, done, next_obs, mask):
+    """A brax Transition of flat rows; rows with ``mask`` 0 are marked truncated (brax's critic loss zeroes
+    their error); the time limit itself is never a truncation here: s' at T_max is stored and bootstraps."""
+    return brax_types.Transition(observation=obs, action=action, reward=reward, discount=1.0 - done,
+                                 next_observation=next_obs,
+                                 extras={"state_extras": {"truncation": 1.0 - mask}, "policy_extras": {}})
+
+
+def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optional[ProgressFn] = None) -> Method:
+    """PEARL on ``family``: ``init`` and ``learn_task`` as every method (``jcomps.methods.base``)."""
+    nets = make_networks(config, family)
+    act = make_act(nets)
+    budget = config.budget_for(family)
+    batch = config.num_trajectories * family.max_steps
+    capacity = buffers.transition_capacity(config.buffer_size, batch)
+    alpha_loss_fn, critic_loss_fn, actor_loss_fn = sac_losses.make_losses(
+        nets.sac, reward_scaling=config.reward_scale, discounting=config.discount, action_size=family.action_size)
+    optimizer = optax.adam(config.learning_rate)
+
+    def init(rng: jax.Array) -> PEARLState:
+        rng, k_pi, k_q, k_enc = jax.random.split(rng, 4)
+        policy = {"net": nets.sac.policy_network.init(k_pi), "z": jnp.zeros((config.latent_size,), jnp.float32)}
+        q = nets.sac.q_network.init(k_q)
+        encoder = nets.encoder.init(k_enc, jnp.zeros((1, nets.context_size), jnp.float32))
+        log_alpha = jnp.log(jnp.asarray(config.alpha, jnp.float32))
+        replay = buffers.transitions_init(config.max_tasks, capacity, family.obs_size, family.action_size)
+        return PEARLState(networks.ActorCriticParams(policy, ()), q, q, encoder, optimizer.init(policy["net"]),
+                          optimizer.init((q, encoder)), optimizer.init(log_alpha), log_alpha, replay, rng,
+                          jnp.int32(0))
+
+    def draw_z(encoder, replay, slot, rng, shape=()):
+        k_ctx, k_z = jax.random.split(rng)
+        context, mask = sample_context(config, replay, slot, k_ctx)
+        mu, var = posterior(config, nets, encoder, context, mask)
+        return mu + jnp.sqrt(var) * jax.random.normal(k_z, shape + mu.shape, jnp.float32)
+
+    def critic_objective(q_encoder, policy_net, target_q, alpha, rows, mask, contexts, context_mask, key):
+        q, encoder = q_encoder
+        k_z, k_loss = jax.random.split(key)
+        mu, var = jax.vmap(lambda c, m: posterior(config, nets, encoder, c, m))(contexts, context_mask)
+        z = mu + jnp.sqrt(var) * jax.random.normal(k_z, mu.shape, jnp.float32)  # [M, latent]
+        zs = z[:, None, :]  # one z per task slot, for all its rows
+        flat = lambda x: x.reshape((-1,) + x.shape[2:])  # noqa: E731
+        trans = _transitions(flat(with_latent(rows["obs"], zs)), flat(rows["action"]), flat(rows["reward"]),
+                             flat(rows["done"]), flat(with_latent(rows["next_obs"], zs)), flat(mask))
+        # brax's target is under stop_gradient: the encoder learns through Q(s, a, z) only, as in PEARL.
+        q_loss = critic_loss_fn(q, policy_net, None, target_q, alpha, trans, k_loss)
+        kl = jnp.mean(kl_to_prior(mu, var))
+        return q_loss + config.kl_weight * kl, (q_loss, kl, jax.lax.stop_gradient(z))
+
+    critic_grad = jax.value_and_grad(critic_objective, has_aux=True)
+
+    def gradient_step(state: PEARLState, key: jax.Array):
+        k_slots, k_rows, k_ctx, k_critic, k_actor, k_alpha = jax.random.split(key, 6)
+        seen = state.replay.count > 0
+        slots = jax.random.choice(k_slots, config.max_tasks, (config.meta_batch,), p=seen / jnp.sum(seen))
+        rows, mask = jax.vmap(lambda s, k: buffers.transitions_sample(state.replay, s, config.minibatch_size, k))(
+            slots, jax.random.split(k_rows, config.meta_batch))
+        contexts, context_mask = jax.vmap(lambda s, k: sample_context(config, state.replay, s, k))(
+            slots, jax.random.split(k_ctx, config.meta_batch))
+        alpha = jnp.exp(state.log_alpha)
+        policy_net = state.params.policy["net"]
+        (_, (q_loss, kl, z)), g_critic = critic_grad((state.q, state.encoder), policy_net, state.target_q, alpha,
+                                                     rows, mask, contexts, context_mask, k_critic)
+        up, critic_opt = optimizer.update(g_critic, state.critic_opt, (state.q, state.encoder))
+        q, encoder = optax.apply_updates((state.q, state.encoder), up)
+        obs_z = with_latent(rows["obs"], z[:, None, :]).reshape((-1, family.obs_size + config.latent_size))
+        actor_rows = _transitions(obs_z, None, None, jnp.zeros(obs_z.shape[:1]), obs_z, mask.reshape(-1))
+        actor_loss, g_pi = jax.value_and_grad(actor_loss_fn)(policy_net, None, q, alpha, actor_rows, k_actor)
+        up, policy_opt = optimizer.update(g_pi, state.policy_opt, policy_net)
+        new_policy_net = optax.apply_updates(policy_net, up)
+        log_prob = _log_prob_of_samples(policy_net, obs_z, k_actor)
+        if config.auto_alpha:
+            a_loss, g_alpha = jax.value_and_grad(alpha_loss_fn)(state.log_alpha, policy_net, None, actor_rows,
+                                                                k_alpha)
+            up, alpha_opt = optimizer.update(g_alpha, state.alpha_opt, state.log_alpha)
+            log_alpha = optax.apply_updates(state.log_alpha, up)
+        else:
+            a_loss, alpha_opt, log_alpha = jnp.float32(0.0), state.alpha_opt, state.log_alpha
+        target_q = polyak(state.target_q, q, config.tau)
+        new = state._replace(params=state.params._replace(policy={**state.params.policy, "net": new_policy_net}),
+                             q=q, target_q=target_q, encoder=encoder, policy_opt=policy_opt, critic_opt=critic_opt,
+                             alpha_opt=alpha_opt, log_alpha=log_alpha)
+        terms = jnp.stack([actor_loss, q_loss, -log_prob, kl])
+        finite = all_finite((terms, a_loss, g_critic, g_pi))
+        return keep_if_finite(finite, new, state), terms, ~finite
+
+    def _log_prob_of_samples(policy_net, obs_z, key):
+        dist = nets.sac.parametric_action_distribution
+        params = nets.sac.policy_network.apply(None, policy_net, obs_z)
+        return jnp.mean(dist.log_prob(params, dist.sample_no_postprocessing(params, key)))
+
+    class Carry(NamedTuple):
+        state: PEARLState
+        it: jax.Array
+        solved: jax.Array
+        metrics: ppo.IterationMetrics
+
+    def learn_task(state: PEARLState, task) -> tuple[PEARLState, TaskMetrics]:
+        slot = state.task_index
+        report = with_fields(progress_fn, task=state.task_index)
+
+        def cond(c: Carry):
+            return (~c.solved) & (c.it < budget)
+
+        def body(c: Carry):
+            rng, k_z, k_roll, k_upd = jax.random.split(c.state.rng, 4)
+            s = c.state._replace(rng=rng)
+            z = draw_z(s.encoder, s.replay, slot, k_z, (config.num_trajectories,))
+            traj = acting.rollout(family, {**s.params.policy, "z": z}, task, k_roll, config.num_trajectories,
+                                  act=act)
+            success_rate = family.success_rate(traj.success)
+            mean_return = jnp.mean(jnp.sum(traj.reward, axis=0))
+            solved = success_rate >= family.success_threshold
+            if report is not None:
+                report({"iteration": c.it + 1, "success_rate": success_rate, "mean_return": mean_return})
+            s = s._replace(replay=buffers.transitions_add(s.replay, slot, traj))
+
+            def update(s):
+                def step(carry, key):
+                    s, bad = carry
+                    s, terms, nonfinite = gradient_step(s, key)
+                    return (s, bad | nonfinite), terms
+
+                (s, bad), terms = jax.lax.scan(step, (s, jnp.array(False)), jax.random.split(k_upd, config.num_updates))
+                return s, jnp.mean(terms, axis=0), bad.astype(jnp.float32)
+
+            def skip(s):
+                return s, jnp.zeros((4,), jnp.float32), jnp.float32(0.0)
+
+            rollout_finite = all_finite((traj.obs, traj.reward))
+            s, terms, bad = jax.lax.cond(solved | ~rollout_finite, skip, update, s)
+            bad = jnp.maximum(bad, 1.0 - rollout_finite.astype(jnp.float32))
+            row = ppo.IterationMetrics(mean_return, success_rate, terms[0], terms[1], terms[2], terms[3], bad,
+                                       jnp.array(True))
+            metrics = jax.tree.map(lambda m, v: m.at[c.it].set(v), c.metrics, row)
+            return Carry(s, c.it + 1, solved, metrics)
+
+        out = jax.lax.while_loop(cond, body, Carry(state, jnp.int32(0), jnp.array(False), ppo.empty_metrics(budget)))
+        s = out.state
+        rng, k_z = jax.random.split(s.rng)
+        z = draw_z(s.encoder, s.replay, slot, k_z)
+        s = s._replace(params=s.params._replace(policy={**s.params.policy, "z": z}), rng=rng,
+                       task_index=state.task_index + 1)
+        return s, TaskMetrics(out.it, out.solved, out.metrics)
+
+    def policy_for(state: PEARLState, slot, rng):
+        return {**state.params.policy, "z": draw_z(state.encoder, state.replay, slot, rng)}
+
+    def adapt(state: PEARLState, task, rng, iterations: int):
+        def one(carry, key):
+            prev, has_prev = carry
+            k_ctx, k_z, k_roll = jax.random.split(key, 3)
+            idx = jax.random.randint(k_ctx, (config.context_size,), 0, prev["reward"].shape[0])
+            rows = jax.tree.map(lambda x: x[idx], prev)
+            mask = rows.pop("valid") * has_prev.astype(jnp.float32)
+            mu, var = posterior(config, nets, state.encoder, context_features(config, rows), mask)
+            z = mu + jnp.sqrt(var) * jax.random.normal(k_z, (config.num_trajectories,) + mu.shape, jnp.float32)
+            traj = acting.rollout(family, {**state.params.policy, "z": z}, task, k_roll, config.num_trajectories,
+                                  act=act)
+            out = (jnp.mean(jnp.sum(traj.reward, axis=0)), family.success_rate(traj.success))
+            return (buffers.transitions_of(traj), jnp.array(True)), out
+
+        z = lambda *shape: jnp.zeros((batch,) + shape, jnp.float32)  # noqa: E731
+        empty = {"obs": z(family.obs_size), "action": z(family.action_size), "reward": z(),
+                 "next_obs": z(family.obs_size), "done": z(), "valid": z()}
+        _, (returns, success) = jax.lax.scan(one, (empty, jnp.array(False)), jax.random.split(rng, iterations))
+        return returns, success
+
+    return Method("pearl", config, family, init, learn_task, act=act, policy_for=policy_for, adapt=adapt)
