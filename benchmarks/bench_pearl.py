@@ -1,0 +1,96 @@
+"""What one PEARL iteration costs: collection plus gradient steps, against raw vmapped ``env.step`` for the same env
+steps.
+
+One iteration of ``pearl.learn_task`` (budget 1, from a state whose replay buffer already holds one batch, so the
+gradient steps sample real data): a latent from the task's context, ``num_trajectories`` episodes of T_max steps
+with the tanh-Gaussian policy, the write to the replay buffer, and ``num_updates`` gradient steps (critics, encoder,
+actor, Polyak), against ``num_trajectories`` · T_max raw steps with precomputed actions in one jitted scan. The
+rollout alone (PEARL's policy) is timed too, so the gradient steps' share is visible. One line per case, ``key=value``
+pairs ending in ``ratio=<PEARL iteration throughput / raw throughput>`` (median over alternating timed pairs).
+
+    python benchmarks/bench_pearl.py [--families cheetah_vel] [--num-updates 64 256] [--repeats 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import time
+
+import jax
+import numpy as np
+
+from jcomps import acting, envs, methods
+from jcomps.methods import pearl
+
+
+def _seconds(fn, args):
+    start = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    return time.perf_counter() - start
+
+
+def bench(name: str, num_updates: int, repeats: int) -> str:
+    family = envs.make(name)
+    task = envs.task_at(family, 0)
+    config = dataclasses.replace(pearl.PEARLConfig(), budget=1, num_updates=num_updates, max_tasks=2)
+    method = methods.make("pearl", family, config)
+    batch = config.num_trajectories
+    steps = family.max_steps * batch
+    learn = jax.jit(method.learn_task)
+    state = method.init(jax.random.PRNGKey(0))
+    start = time.perf_counter()
+    state, _ = jax.block_until_ready(learn(state, task))  # now the buffer holds one batch: the timed iterations
+    compile_s = time.perf_counter() - start  # sample real transitions (compile and one iteration)
+    state = state._replace(task_index=jax.numpy.int32(0))
+    actions = 0.5 * jax.random.normal(jax.random.PRNGKey(1), (family.max_steps, batch, family.action_size))
+
+    @jax.jit
+    def raw(rng, actions):
+        s = jax.vmap(family.reset, (0, None))(jax.random.split(rng, batch), task)
+        step = jax.vmap(family.step, (0, 0, None))
+
+        def body(s, a):
+            nxt = step(s, a, task)
+            return nxt, nxt.reward
+
+        return jax.lax.scan(body, s, actions)[1]
+
+    @jax.jit
+    def rollout(rng, policy):
+        return acting.rollout(family, policy, task, rng, batch, act=method.act).reward
+
+    iteration = lambda s: learn(s, task)[1].iterations  # noqa: E731
+    rng = jax.random.PRNGKey(2)
+    policy = state.params.policy
+    _seconds(raw, (rng, actions))
+    _seconds(rollout, (rng, policy))
+    t_it, t_raw, t_roll = [], [], []
+    for _ in range(repeats):
+        t_it.append(_seconds(iteration, (state,)))
+        t_raw.append(_seconds(raw, (rng, actions)))
+        t_roll.append(_seconds(rollout, (rng, policy)))
+    t_it, t_raw, t_roll = map(np.asarray, (t_it, t_raw, t_roll))
+    ratio = float(np.median(t_raw / t_it))
+    it_s, raw_s, roll_s = float(np.median(t_it)), float(np.median(t_raw)), float(np.median(t_roll))
+    return (f"family={name} method=pearl num_updates={num_updates} meta_batch={config.meta_batch} "
+            f"minibatch={config.minibatch_size} steps={steps} raw_steps_per_s={steps / raw_s:.0f} "
+            f"pearl_steps_per_s={steps / it_s:.0f} iteration_s={it_s:.3f} rollout_s={roll_s:.3f} "
+            f"update_s={max(it_s - roll_s, 0.0):.3f} update_share={max(it_s - roll_s, 0.0) / it_s:.3f} "
+            f"compile_s={compile_s:.1f} ratio={ratio:.3f}")
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--families", nargs="+", default=["cheetah_vel"], choices=envs.FAMILIES)
+    parser.add_argument("--num-updates", nargs="+", type=int, default=[64])
+    parser.add_argument("--repeats", type=int, default=5)
+    args = parser.parse_args()
+    print(f"backend={jax.default_backend()} devices={jax.device_count()}", flush=True)
+    for name in args.families:
+        for n in args.num_updates:
+            print(bench(name, n, args.repeats), flush=True)
+
+
+if __name__ == "__main__":
+    main()
