@@ -52,8 +52,8 @@ def test_sac_target_equals_a_hand_computation(family):
     q, target_q = nets.sac.q_network.init(k[4]), nets.sac.q_network.init(k[5])
     policy_net = nets.sac.policy_network.init(k[6])
     alpha = 0.7
-    loss = critic_loss(q, policy_net, None, target_q, alpha, pearl._transitions(obs, action, reward, done, next_obs,
-                                                                               mask), k[7])
+    loss = jax.jit(lambda t: critic_loss(q, policy_net, None, target_q, alpha, t, k[7]))(
+        pearl._transitions(obs, action, reward, done, next_obs, mask))
     # by hand: a' = tanh(loc + scale·ε), ε ~ N(0, 1) from the same key, and its tanh-corrected log-probability
     act = pearl.make_act(nets)
     noise = jax.random.normal(k[7], (n, family.action_size))
@@ -113,21 +113,23 @@ def test_buffers_keep_every_task_and_never_mix_slots(tiny, family):
     np.testing.assert_array_equal(s1.replay.count, [int(m1.iterations) * batch, 0, 0])
     np.testing.assert_array_equal(s2.replay.count, [int(m1.iterations) * batch, int(m2.iterations) * batch, 0])
     chex.assert_trees_all_equal(jax.tree.map(lambda x: x[0], s2.replay), jax.tree.map(lambda x: x[0], s1.replay))
-    # unit laws: a write to slot 1 leaves slot 0 as it was; a sample of a slot holds only that slot's rows; the
-    # ring overwrites the oldest batch
+    # unit laws: a write to slot 1 leaves slot 0 as it was; a sample holds only rows written to that slot; the
+    # ring overwrites its oldest batch
     store = buffers.transitions_init(2, 2 * batch, family.obs_size, family.action_size)
-    policy = s0.params.policy
-    traj = acting.rollout(family, policy, envs.task_at(family, 0), jax.random.PRNGKey(3), TINY.num_trajectories,
-                          act=method.act)
-    ones = traj._replace(obs=jnp.ones_like(traj.obs), last_obs=jnp.ones_like(traj.last_obs))
+    traj = acting.rollout(family, s0.params.policy, envs.task_at(family, 0), jax.random.PRNGKey(3),
+                          TINY.num_trajectories, act=method.act)
+    marked = lambda v: traj._replace(obs=jnp.full_like(traj.obs, v), last_obs=jnp.full_like(traj.last_obs, v))  # noqa
     store = buffers.transitions_add(store, 0, traj)
     before = jax.tree.map(lambda x: x[0], store)
-    for _ in range(3):
-        store = buffers.transitions_add(store, 1, ones)
+    store = buffers.transitions_add(store, 1, marked(1.0))
+    rows, mask = buffers.transitions_sample(store, 1, 256, jax.random.PRNGKey(4))
+    np.testing.assert_array_equal(rows["obs"], 1.0)  # only the held half of the ring is sampled
+    assert float(mask.min()) == 1.0
+    store = buffers.transitions_add(buffers.transitions_add(store, 1, marked(2.0)), 1, marked(3.0))
     chex.assert_trees_all_equal(jax.tree.map(lambda x: x[0], store), before)
-    rows, mask = buffers.transitions_sample(store, 1, 64, jax.random.PRNGKey(4))
-    np.testing.assert_array_equal(rows["obs"], 1.0)
-    assert float(mask.min()) == 1.0 and int(store.count[1]) == 3 * batch
+    np.testing.assert_array_equal(store.obs[1, :batch], 3.0)  # batch 3 replaced batch 1, the oldest
+    np.testing.assert_array_equal(store.obs[1, batch:], 2.0)
+    assert int(store.count[1]) == 3 * batch
     rows, mask = buffers.transitions_sample(buffers.transitions_init(2, batch, 2, 2), 0, 4, jax.random.PRNGKey(5))
     np.testing.assert_array_equal(mask, 0.0)  # an empty slot gives no valid row
     # the next observation of the last step is the one reached at T_max (a truncation, not a termination)
@@ -149,8 +151,68 @@ def test_pearl_learn_task_reports_the_shared_metrics(tiny, family):
     assert held.success_rate.shape[1] == 2 and held.iterations.shape == held.solved.shape
 
 
+def test_the_encoder_learns_through_the_critic_loss(family):
+    """The critics' and encoder's gradient equals that of oyster's critic loss written by hand, Σ_k mean (Q_k(s, a, z)
+    − y)² with y under stop_gradient and z = μ + σ·ε from the posterior of each slot's context (KL weight 0)."""
+    cfg = dataclasses.replace(TINY, kl_weight=0.0)
+    nets = pearl.make_networks(cfg, family)
+    _, critic_loss, _ = pearl.sac_losses.make_losses(nets.sac, cfg.reward_scale, cfg.discount, family.action_size)
+    k = jax.random.split(jax.random.PRNGKey(7), 10)
+    M, n, c, A = 2, 6, 4, family.action_size
+    rows = {"obs": jax.random.normal(k[0], (M, n, family.obs_size)), "reward": jax.random.normal(k[2], (M, n)),
+            "action": jnp.tanh(jax.random.normal(k[1], (M, n, A))), "done": jnp.zeros((M, n)),
+            "next_obs": jax.random.normal(k[3], (M, n, family.obs_size))}
+    contexts = jax.random.normal(k[4], (M, c, nets.context_size))
+    ones = jnp.ones((M, n)), jnp.ones((M, c))
+    q, target_q = nets.sac.q_network.init(k[5]), nets.sac.q_network.init(k[6])
+    policy_net = nets.sac.policy_network.init(k[7])
+    encoder = nets.encoder.init(k[8], jnp.zeros((1, nets.context_size)))
+    alpha = 0.5
+    (_, (q_loss, _, z)), (g_q, g_enc) = jax.jit(lambda qe: pearl.critic_grad(  # jitted: eager flax is slow
+        cfg, nets, critic_loss, qe, policy_net, target_q, alpha, rows, ones[0], contexts, ones[1], k[9]))((q, encoder))
+    act = pearl.make_act(nets)
+
+    def by_hand(q, encoder):
+        k_z, k_loss = jax.random.split(k[9])
+        mu, var = jax.vmap(lambda x, m: pearl.posterior(cfg, nets, encoder, x, m))(contexts, ones[1])
+        zs = jnp.broadcast_to((mu + jnp.sqrt(var) * jax.random.normal(k_z, mu.shape))[:, None], (M, n, mu.shape[-1]))
+        s = jnp.concatenate([rows["obs"], zs], -1).reshape(M * n, -1)
+        s2 = jnp.concatenate([rows["next_obs"], zs], -1).reshape(M * n, -1)
+        a2, log_p2 = act({"net": policy_net, "z": jnp.zeros((0,))}, s2, jax.random.normal(k_loss, (M * n, A)))
+        next_v = jnp.min(nets.sac.q_network.apply(None, target_q, s2, a2), -1) - alpha * log_p2
+        y = jax.lax.stop_gradient(cfg.reward_scale * rows["reward"].reshape(-1) + cfg.discount * next_v)
+        q_sa = nets.sac.q_network.apply(None, q, s, rows["action"].reshape(M * n, A))
+        return jnp.sum(jnp.mean(jnp.square(q_sa - y[:, None]), axis=0))
+
+    np.testing.assert_allclose(float(q_loss), float(jax.jit(by_hand)(q, encoder)), rtol=1e-5)
+    hand_q, hand_enc = jax.jit(jax.grad(by_hand, argnums=(0, 1)))(q, encoder)
+    chex.assert_trees_all_close((g_q, g_enc), (hand_q, hand_enc), rtol=1e-4, atol=1e-6)
+    assert max(float(jnp.max(jnp.abs(g))) for g in jax.tree.leaves(g_enc)) > 0  # the encoder does learn
+
+
+def test_policy_for_reads_each_slot_context(tiny):
+    method, _, _, (s2, _) = tiny
+    key = jax.random.PRNGKey(11)
+    z0 = methods.base.policy_for(method, s2, jnp.int32(0), key)["z"]
+    z1 = methods.base.policy_for(method, s2, jnp.int32(1), key)["z"]
+    assert z0.shape == (TINY.latent_size,) and not np.allclose(z0, z1)
+
+
+def test_auto_alpha_follows_the_entropy_and_contexts_without_next_obs(family):
+    """With ``auto_alpha``, one Adam step moves log α by the learning rate, down while the policy's entropy is above
+    the target −A/2 (brax's), up below it; ``context_next_obs=False`` encodes (s, a, r) only."""
+    cfg = dataclasses.replace(TINY, auto_alpha=True, context_next_obs=False, learning_rate=1e-2)
+    method = methods.make("pearl", family, cfg)
+    assert pearl.make_networks(cfg, family).context_size == family.obs_size + family.action_size + 1
+    s0 = method.init(jax.random.PRNGKey(4))
+    s1, metrics = jax.jit(method.learn_task)(s0, envs.task_at(family, 0))
+    entropy = float(metrics.per_iteration.entropy[0])
+    step = float(s1.log_alpha - s0.log_alpha)
+    assert step == pytest.approx(-cfg.learning_rate * np.sign(entropy + 0.5 * family.action_size), rel=1e-3)
+
+
 @pytest.mark.parametrize("field,value", [("kl_weight", -1.0), ("tau", 0.0), ("latent_size", 0), ("alpha", 0.0),
-                                         ("meta_batch", 0), ("hidden_sizes", ())])
+                                         ("meta_batch", 0), ("hidden_sizes", ()), ("policy_reg", -1.0)])
 def test_bad_pearl_config_names_the_field(field, value):
     with pytest.raises(ValueError, match=field):
         pearl.PEARLConfig(**{field: value})

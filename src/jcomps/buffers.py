@@ -220,17 +220,23 @@ def transitions_of(traj: Trajectory) -> dict:
     return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), flat)
 
 
+def finite_transitions(traj: Trajectory) -> dict:
+    """``transitions_of(traj)`` with the trajectories holding NaN or infinity zeroed and marked not ``valid``."""
+    ok = finite_trajectories(traj)
+    flat = transitions_of(_zero_nonfinite(traj, ok))
+    flat["valid"] = flat["valid"] * jnp.broadcast_to(ok, traj.valid.shape).reshape(-1)
+    return flat
+
+
 def transitions_add(store: TransitionStore, slot: jax.Array, traj: Trajectory) -> TransitionStore:
     """Writes the batch ``traj`` into slot ``slot``'s ring, overwriting its oldest transitions when full. The
     capacity must be a multiple of the batch's T·B (``transition_capacity``), so a batch is one block.
     Transitions holding NaN or infinity are stored as zeros with ``valid`` 0 (never sampled)."""
-    ok = finite_trajectories(traj)
-    flat = transitions_of(_zero_nonfinite(traj, ok))
+    flat = finite_transitions(traj)
     n = flat["reward"].shape[0]
     capacity = store.reward.shape[1]
     if capacity % n:
         raise ValueError(f"buffer capacity {capacity} is not a multiple of the batch's {n} transitions")
-    flat["valid"] = flat["valid"] * jnp.broadcast_to(ok, traj.valid.shape).reshape(-1)
     pos = store.count[slot] % capacity
 
     def put(buf, x):
@@ -252,7 +258,7 @@ def transitions_sample(store: TransitionStore, slot: jax.Array, num: int, rng: j
     capacity = store.reward.shape[1]
     held = jnp.minimum(store.count[slot], capacity)
     idx = jax.random.randint(rng, (num,), 0, jnp.maximum(held, 1))
-    rows = {k: getattr(store, k)[slot][idx] for k in ("obs", "action", "reward", "next_obs", "done", "valid")}
+    rows = {k: getattr(store, k)[slot, idx] for k in ("obs", "action", "reward", "next_obs", "done", "valid")}
     mask = rows.pop("valid") * (held > 0).astype(jnp.float32)
     return rows, mask
 

@@ -92,6 +92,8 @@ class PEARLConfig:
     reward_scale: float = 5.0
     """Rewards are multiplied by this in the soft Bellman target (oyster: 5; with α = 1 it sets the entropy's
     weight)."""
+    policy_reg: float = 1e-3
+    """Weight of oyster's policy regularisers, the mean square of the pre-tanh mean and of its log-scale."""
     alpha: float = 1.0
     """Entropy temperature α when ``auto_alpha`` is off (oyster: 1, with the reward scale)."""
     auto_alpha: bool = False
@@ -104,7 +106,7 @@ class PEARLConfig:
     """Task slots of the replay buffers: the longest sequence the method can learn."""
 
     TRACED: ClassVar[frozenset] = frozenset({"learning_rate", "discount", "tau", "reward_scale", "kl_weight",
-                                             "alpha"})
+                                             "alpha", "policy_reg"})
     """Fields that may hold traced scalars (a hyperparameter-grid axis)."""
 
     def __post_init__(self):
@@ -122,6 +124,7 @@ class PEARLConfig:
         check_field(self.reward_scale > 0, "reward_scale", self.reward_scale, "a number > 0")
         check_field(self.kl_weight >= 0, "kl_weight", self.kl_weight, "a number >= 0")
         check_field(self.alpha > 0, "alpha", self.alpha, "a number > 0")
+        check_field(self.policy_reg >= 0, "policy_reg", self.policy_reg, "a number >= 0")
 
     def budget_for(self, family: Family) -> int:
         """Iterations per task for ``family``."""
@@ -238,6 +241,61 @@ def _transitions(obs, action, reward, done, next_obs, mask):
                                  extras={"state_extras": {"truncation": 1.0 - mask}, "policy_extras": {}})
 
 
+def critic_objective(config: PEARLConfig, nets: Networks, critic_loss_fn, q_encoder, policy_net, target_q, alpha,
+                     rows: dict, mask: jax.Array, contexts: jax.Array, context_mask: jax.Array, key: jax.Array):
+    """The critics' and encoder's loss on a meta-batch of M task slots: oyster's Σ_k mean (Q_k(s, a, z) − y)² (brax's
+    critic loss, ½ mean over rows and both critics, times 4, over the valid rows) plus ``kl_weight`` · Σ over the
+    slots of KL(q(z|c) ‖ N(0, I)). ``rows`` hold [M, n, ...] transitions with ``mask`` f32[M, n]; ``contexts``
+    f32[M, c, width] with ``context_mask``. z is drawn per slot by reparameterisation, so the encoder learns through
+    Q(s, a, z) (brax's target is under stop_gradient) and the KL. Returns (loss, (critic loss, mean KL, z [M, latent]
+    with its gradient stopped))."""
+    q, encoder = q_encoder
+    k_z, k_loss = jax.random.split(key)
+    mu, var = jax.vmap(lambda c, m: posterior(config, nets, encoder, c, m))(contexts, context_mask)
+    z = mu + jnp.sqrt(var) * jax.random.normal(k_z, mu.shape, jnp.float32)  # [M, latent]
+    zs = z[:, None, :]  # one z per task slot, for all its rows
+    flat = lambda x: x.reshape((-1,) + x.shape[2:])  # noqa: E731
+    trans = _transitions(flat(with_latent(rows["obs"], zs)), flat(rows["action"]), flat(rows["reward"]),
+                         flat(rows["done"]), flat(with_latent(rows["next_obs"], zs)), flat(mask))
+    rows_total = mask.size
+    q_loss = 4.0 * critic_loss_fn(q, policy_net, None, target_q, alpha, trans, k_loss) * rows_total / jnp.maximum(
+        jnp.sum(mask), 1.0)
+    kl = kl_to_prior(mu, var)
+    return q_loss + config.kl_weight * jnp.sum(kl), (q_loss, jnp.mean(kl), jax.lax.stop_gradient(z))
+
+
+critic_grad = jax.value_and_grad(critic_objective, argnums=3, has_aux=True)
+
+
+def actor_objective(config: PEARLConfig, nets: Networks, policy_net, q, alpha, obs_z: jax.Array, mask: jax.Array,
+                    key: jax.Array):
+    """brax's actor loss α log π(ã|s, z) − min_k Q_k(s, ã, z), ã ~ π(·|s, z) by reparameterisation, as a mean over
+    the valid rows only (brax's is over every row; after a termination a row is no transition), plus oyster's
+    regularisers ``policy_reg`` · (mean loc² + mean log-scale²) of the pre-tanh Gaussian. Returns (loss, log π
+    f32[n] of the samples, for the temperature and the entropy metric)."""
+    dist = nets.sac.parametric_action_distribution
+    params = nets.sac.policy_network.apply(None, policy_net, obs_z)
+    pre = dist.sample_no_postprocessing(params, key)
+    log_prob = dist.log_prob(params, pre)
+    q_action = nets.sac.q_network.apply(None, q, obs_z, dist.postprocess(pre))
+    per_row = alpha * log_prob - jnp.min(q_action, axis=-1)
+    weight = mask / jnp.maximum(jnp.sum(mask), 1.0)
+    loc, raw = jnp.split(params, 2, axis=-1)
+    log_scale = jnp.log(jax.nn.softplus(raw) + dist._min_std)
+    reg = config.policy_reg * jnp.sum(weight[:, None] * (jnp.square(loc) + jnp.square(log_scale))) / loc.shape[-1]
+    return jnp.sum(weight * per_row) + reg, jax.lax.stop_gradient(log_prob)
+
+
+actor_grad = jax.value_and_grad(actor_objective, argnums=2, has_aux=True)
+
+
+def alpha_objective(log_alpha, log_prob: jax.Array, mask: jax.Array, target_entropy: float):
+    """brax's temperature loss α · (−log π − target entropy), as a mean over the valid rows: α falls while the
+    policy's entropy is above the target and rises below it."""
+    weight = mask / jnp.maximum(jnp.sum(mask), 1.0)
+    return jnp.sum(weight * jnp.exp(log_alpha) * jax.lax.stop_gradient(-log_prob - target_entropy))
+
+
 def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optional[ProgressFn] = None) -> Method:
     """PEARL on ``family``: ``init`` and ``learn_task`` as every method (``jcomps.methods.base``)."""
     nets = make_networks(config, family)
@@ -245,8 +303,9 @@ def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optio
     budget = config.budget_for(family)
     batch = config.num_trajectories * family.max_steps
     capacity = buffers.transition_capacity(config.buffer_size, batch)
-    alpha_loss_fn, critic_loss_fn, actor_loss_fn = sac_losses.make_losses(
-        nets.sac, reward_scaling=config.reward_scale, discounting=config.discount, action_size=family.action_size)
+    _, critic_loss_fn, _ = sac_losses.make_losses(nets.sac, reward_scaling=config.reward_scale,
+                                                  discounting=config.discount, action_size=family.action_size)
+    target_entropy = -0.5 * family.action_size  # brax's
     optimizer = optax.adam(config.learning_rate)
 
     def init(rng: jax.Array) -> PEARLState:
@@ -266,24 +325,8 @@ def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optio
         mu, var = posterior(config, nets, encoder, context, mask)
         return mu + jnp.sqrt(var) * jax.random.normal(k_z, shape + mu.shape, jnp.float32)
 
-    def critic_objective(q_encoder, policy_net, target_q, alpha, rows, mask, contexts, context_mask, key):
-        q, encoder = q_encoder
-        k_z, k_loss = jax.random.split(key)
-        mu, var = jax.vmap(lambda c, m: posterior(config, nets, encoder, c, m))(contexts, context_mask)
-        z = mu + jnp.sqrt(var) * jax.random.normal(k_z, mu.shape, jnp.float32)  # [M, latent]
-        zs = z[:, None, :]  # one z per task slot, for all its rows
-        flat = lambda x: x.reshape((-1,) + x.shape[2:])  # noqa: E731
-        trans = _transitions(flat(with_latent(rows["obs"], zs)), flat(rows["action"]), flat(rows["reward"]),
-                             flat(rows["done"]), flat(with_latent(rows["next_obs"], zs)), flat(mask))
-        # brax's target is under stop_gradient: the encoder learns through Q(s, a, z) only, as in PEARL.
-        q_loss = critic_loss_fn(q, policy_net, None, target_q, alpha, trans, k_loss)
-        kl = jnp.mean(kl_to_prior(mu, var))
-        return q_loss + config.kl_weight * kl, (q_loss, kl, jax.lax.stop_gradient(z))
-
-    critic_grad = jax.value_and_grad(critic_objective, has_aux=True)
-
     def gradient_step(state: PEARLState, key: jax.Array):
-        k_slots, k_rows, k_ctx, k_critic, k_actor, k_alpha = jax.random.split(key, 6)
+        k_slots, k_rows, k_ctx, k_critic, k_actor = jax.random.split(key, 5)
         seen = state.replay.count > 0
         slots = jax.random.choice(k_slots, config.max_tasks, (config.meta_batch,), p=seen / jnp.sum(seen))
         rows, mask = jax.vmap(lambda s, k: buffers.transitions_sample(state.replay, s, config.minibatch_size, k))(
@@ -292,35 +335,30 @@ def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optio
             slots, jax.random.split(k_ctx, config.meta_batch))
         alpha = jnp.exp(state.log_alpha)
         policy_net = state.params.policy["net"]
-        (_, (q_loss, kl, z)), g_critic = critic_grad((state.q, state.encoder), policy_net, state.target_q, alpha,
-                                                     rows, mask, contexts, context_mask, k_critic)
+        (_, (q_loss, kl, z)), g_critic = critic_grad(config, nets, critic_loss_fn, (state.q, state.encoder),
+                                                     policy_net, state.target_q, alpha, rows, mask, contexts,
+                                                     context_mask, k_critic)
         up, critic_opt = optimizer.update(g_critic, state.critic_opt, (state.q, state.encoder))
         q, encoder = optax.apply_updates((state.q, state.encoder), up)
         obs_z = with_latent(rows["obs"], z[:, None, :]).reshape((-1, family.obs_size + config.latent_size))
-        actor_rows = _transitions(obs_z, None, None, jnp.zeros(obs_z.shape[:1]), obs_z, mask.reshape(-1))
-        actor_loss, g_pi = jax.value_and_grad(actor_loss_fn)(policy_net, None, q, alpha, actor_rows, k_actor)
+        flat_mask = mask.reshape(-1)
+        (actor_loss, log_prob), g_pi = actor_grad(config, nets, policy_net, q, alpha, obs_z, flat_mask, k_actor)
         up, policy_opt = optimizer.update(g_pi, state.policy_opt, policy_net)
         new_policy_net = optax.apply_updates(policy_net, up)
-        log_prob = _log_prob_of_samples(policy_net, obs_z, k_actor)
-        if config.auto_alpha:
-            a_loss, g_alpha = jax.value_and_grad(alpha_loss_fn)(state.log_alpha, policy_net, None, actor_rows,
-                                                                k_alpha)
+        if config.auto_alpha:  # on the actor's samples, before its step (brax's order)
+            g_alpha = jax.grad(alpha_objective)(state.log_alpha, log_prob, flat_mask, target_entropy)
             up, alpha_opt = optimizer.update(g_alpha, state.alpha_opt, state.log_alpha)
             log_alpha = optax.apply_updates(state.log_alpha, up)
         else:
-            a_loss, alpha_opt, log_alpha = jnp.float32(0.0), state.alpha_opt, state.log_alpha
+            g_alpha, alpha_opt, log_alpha = jnp.float32(0.0), state.alpha_opt, state.log_alpha
         target_q = polyak(state.target_q, q, config.tau)
         new = state._replace(params=state.params._replace(policy={**state.params.policy, "net": new_policy_net}),
                              q=q, target_q=target_q, encoder=encoder, policy_opt=policy_opt, critic_opt=critic_opt,
                              alpha_opt=alpha_opt, log_alpha=log_alpha)
-        terms = jnp.stack([actor_loss, q_loss, -log_prob, kl])
-        finite = all_finite((terms, a_loss, g_critic, g_pi))
+        entropy = -jnp.sum(log_prob * flat_mask) / jnp.maximum(jnp.sum(flat_mask), 1.0)
+        terms = jnp.stack([actor_loss, q_loss, entropy, kl])
+        finite = all_finite((terms, g_alpha, g_critic, g_pi))
         return keep_if_finite(finite, new, state), terms, ~finite
-
-    def _log_prob_of_samples(policy_net, obs_z, key):
-        dist = nets.sac.parametric_action_distribution
-        params = nets.sac.policy_network.apply(None, policy_net, obs_z)
-        return jnp.mean(dist.log_prob(params, dist.sample_no_postprocessing(params, key)))
 
     class Carry(NamedTuple):
         state: PEARLState
@@ -391,7 +429,7 @@ def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optio
             traj = acting.rollout(family, {**state.params.policy, "z": z}, task, k_roll, config.num_trajectories,
                                   act=act)
             out = (jnp.mean(jnp.sum(traj.reward, axis=0)), family.success_rate(traj.success))
-            return (buffers.transitions_of(traj), jnp.array(True)), out
+            return (buffers.finite_transitions(traj), jnp.array(True)), out
 
         z = lambda *shape: jnp.zeros((batch,) + shape, jnp.float32)  # noqa: E731
         empty = {"obs": z(family.obs_size), "action": z(family.action_size), "reward": z(),
