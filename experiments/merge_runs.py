@@ -2,8 +2,11 @@
 
 Methods of one study can run in separate processes, e.g. side by side on one GPU, where a method alone leaves
 the GPU mostly idle, or on different machines: give each its own ``--out`` with the same options apart from
-``--methods``, then merge. Everything but the methods must agree (family, sequence, seeds, tasks, chunking,
-evaluation, grid, device count); the methods must not overlap and must have finished. The merged directory
+``--methods``, then merge. Everything but the methods and the chunking must agree (family, sequence, seeds, tasks,
+evaluation, grid, device count); the methods must not overlap and must have finished. Chunking may differ (a
+slow method checkpointing after every task beside others in chunks of 5: the methods' results do not depend on
+it); held-out measurements are then at each method's own chunk boundaries, which the report plots as they are,
+and the merged ``run.json`` lists each method's ``chunk_tasks`` under ``run.chunk_tasks_by_method``. The merged directory
 gets ``run.json`` and ``raw/``, then ``results.json``, the plots and ``significance.md`` as if one run had run
 them all (checkpoints stay in the sources).
 
@@ -27,14 +30,14 @@ def merged_description(descriptions: list) -> dict:
     dirs = [d for d, _ in descriptions]
     first = descriptions[0][1]
     out = json.loads(json.dumps(first))
-    out["run"]["methods"], out["methods"], overrides = [], {}, {}
+    out["run"]["methods"], out["methods"], overrides, chunks = [], {}, {}, {}
     for d, desc in descriptions:
         for key in sorted(set(first) | set(desc)):
             if key in ("methods", "overrides"):
                 continue
             a, b = first.get(key), desc.get(key)
             if key == "run":
-                a, b = {**a, "methods": None}, {**b, "methods": None}
+                a, b = {**a, "methods": None, "chunk_tasks": None}, {**b, "methods": None, "chunk_tasks": None}
             if a != b:
                 diff = experiment._differences({key: a}, {key: b})
                 raise experiment.RunError(f"{d} is not the same study as {dirs[0]}: " + "; ".join(diff[:4]))
@@ -44,8 +47,11 @@ def merged_description(descriptions: list) -> dict:
                                           "merge runs of different methods")
             out["run"]["methods"].append(name)
             out["methods"][name] = desc["methods"][name]
+            chunks[name] = desc["run"]["chunk_tasks"]
             if name in desc.get("overrides", {}):
                 overrides[name] = desc["overrides"][name]
+    if len(set(chunks.values())) > 1:
+        out["run"]["chunk_tasks_by_method"] = chunks
     out.pop("overrides", None)
     if overrides:
         out["overrides"] = overrides

@@ -394,7 +394,13 @@ def test_merged_runs_report_as_one_run(merge_runs, full_run, tmp_path):
         merge_runs.merge(str(tmp_path / "m"), [str(a), str(b)])
     with pytest.raises(experiment.RunError, match="comps is in more than one source"):
         merge_runs.merge(str(tmp_path / "m2"), [str(a), str(a)])
+    # A method run with other chunking (checkpoints after every task) merges; its results are its own.
     desc = json.loads((b / "run.json").read_text())
+    desc["run"]["chunk_tasks"] += 1
+    (b / "run.json").write_text(json.dumps(desc))
+    assert merge_runs.merge(str(tmp_path / "m1"), [str(a), str(b)])["methods"] == merged["methods"]
+    chunks = json.loads((tmp_path / "m1" / "run.json").read_text())["run"]["chunk_tasks_by_method"]
+    assert chunks == {"comps": desc["run"]["chunk_tasks"] - 1, "ppo_tl": desc["run"]["chunk_tasks"]}
     desc["run"]["seeds"] = 3
     (b / "run.json").write_text(json.dumps(desc))
     with pytest.raises(experiment.RunError, match=r"not the same study as .*run.seeds: run has 2, asked 3"):
