@@ -205,10 +205,9 @@ def heldout_adaptation(method: Method, eval_config: EvalConfig, state, heldout_t
     if method.adapt is not None:
         def own(task, key):
             returns, success = method.adapt(state, task, key, eval_config.heldout_run)
-            reached = success >= method.family.success_threshold
-            first = jnp.where(jnp.any(reached), jnp.argmax(reached) + 1, eval_config.heldout_run)
+            first, solved = ppo.first_success(success, method.family.success_threshold, eval_config.heldout_run)
             return HeldoutMetrics(returns[:curve], success[:curve], jnp.where(measured, first, 0).astype(jnp.int32),
-                                  jnp.any(reached) & measured)
+                                  solved & measured)
 
         return jax.vmap(own)(heldout_tasks, jax.random.split(rng, n))
     config = method.config.ppo

@@ -253,6 +253,14 @@ def minibatch_indices(config: PPOConfig, n: int, rng: jax.Array) -> jax.Array:
     return perms.reshape(-1)[:total].reshape(config.num_updates, minibatch)
 
 
+def first_success(success_rate: jax.Array, threshold: float, cap: int) -> tuple[jax.Array, jax.Array]:
+    """Iterations-to-success of a success-rate curve f32[n] run to the end: the first iteration (1-based) at or above
+    ``threshold``, ``cap`` if none is; and bool[], whether one is."""
+    reached = success_rate >= threshold
+    solved = jnp.any(reached)
+    return jnp.where(solved, jnp.argmax(reached).astype(jnp.int32) + 1, cap).astype(jnp.int32), solved
+
+
 def empty_metrics(budget: int) -> IterationMetrics:
     """IterationMetrics of ``budget`` iterations, none of them run yet (zeros, ``valid`` False)."""
     zeros = jnp.zeros((budget,), jnp.float32)
@@ -345,9 +353,7 @@ def rl_step(config: PPOConfig, family: Family, params: networks.ActorCriticParam
 
     init = Carry(params, opt_state, rng, jnp.int32(0), jnp.array(False), metrics0, aux)
     out = jax.lax.while_loop(cond, body, init)
-    if not stop_at_threshold:  # iterations-to-success: the first iteration at or above the threshold
-        reached = out.metrics.success_rate >= family.success_threshold
-        first = jnp.argmax(reached).astype(jnp.int32) + 1
-        return RLStepResult(out.params, out.opt_state, out.metrics, jnp.where(jnp.any(reached), first, budget),
-                            jnp.any(reached), out.aux)
+    if not stop_at_threshold:
+        iterations, solved = first_success(out.metrics.success_rate, family.success_threshold, budget)
+        return RLStepResult(out.params, out.opt_state, out.metrics, iterations, solved, out.aux)
     return RLStepResult(out.params, out.opt_state, out.metrics, out.it, out.solved, out.aux)

@@ -79,11 +79,6 @@ def collection(config) -> Any:
     return getattr(config, "ppo", config)
 
 
-def budget(method: Method) -> int:
-    """Iterations per task N of ``method`` on its family."""
-    return collection(method.config).budget_for(method.family)
-
-
 def env_steps_per_iteration(method: Method) -> int:
     """Env steps one iteration of ``method`` collects (MAML+TL collects two batches per iteration)."""
     if method.env_steps_per_iteration is not None:
