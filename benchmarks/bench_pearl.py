@@ -20,14 +20,9 @@ import time
 import jax
 import numpy as np
 
+from bench_rollout import make_raw, seconds  # the same raw baseline and timer (this folder is on sys.path)
 from jcomps import acting, envs, methods
 from jcomps.methods import pearl
-
-
-def _seconds(fn, args):
-    start = time.perf_counter()
-    jax.block_until_ready(fn(*args))
-    return time.perf_counter() - start
 
 
 def bench(name: str, num_updates: int, repeats: int) -> str:
@@ -45,16 +40,7 @@ def bench(name: str, num_updates: int, repeats: int) -> str:
     state = state._replace(task_index=jax.numpy.int32(0))
     actions = 0.5 * jax.random.normal(jax.random.PRNGKey(1), (family.max_steps, batch, family.action_size))
 
-    @jax.jit
-    def raw(rng, actions):
-        s = jax.vmap(family.reset, (0, None))(jax.random.split(rng, batch), task)
-        step = jax.vmap(family.step, (0, 0, None))
-
-        def body(s, a):
-            nxt = step(s, a, task)
-            return nxt, nxt.reward
-
-        return jax.lax.scan(body, s, actions)[1]
+    raw = make_raw(family, task, batch)
 
     @jax.jit
     def rollout(rng, policy):
@@ -63,13 +49,13 @@ def bench(name: str, num_updates: int, repeats: int) -> str:
     iteration = lambda s: learn(s, task)[1].iterations  # noqa: E731
     rng = jax.random.PRNGKey(2)
     policy = state.params.policy
-    _seconds(raw, (rng, actions))
-    _seconds(rollout, (rng, policy))
+    seconds(raw, (rng, actions))
+    seconds(rollout, (rng, policy))
     t_it, t_raw, t_roll = [], [], []
     for _ in range(repeats):
-        t_it.append(_seconds(iteration, (state,)))
-        t_raw.append(_seconds(raw, (rng, actions)))
-        t_roll.append(_seconds(rollout, (rng, policy)))
+        t_it.append(seconds(iteration, (state,)))
+        t_raw.append(seconds(raw, (rng, actions)))
+        t_roll.append(seconds(rollout, (rng, policy)))
     t_it, t_raw, t_roll = map(np.asarray, (t_it, t_raw, t_roll))
     ratio = float(np.median(t_raw / t_it))
     it_s, raw_s, roll_s = float(np.median(t_it)), float(np.median(t_raw)), float(np.median(t_roll))

@@ -19,7 +19,8 @@ import numpy as np
 from jcomps import acting, envs, ppo
 
 
-def _seconds(fn, args):
+def seconds(fn, args):
+    """Wall seconds of ``fn(*args)``, results ready."""
     start = time.perf_counter()
     jax.block_until_ready(fn(*args))
     return time.perf_counter() - start
@@ -29,11 +30,11 @@ def _time_pair(a, a_args, b, b_args, repeats):
     """Compile times, best-of-``repeats`` run times of ``a`` and ``b``, and the median of the per-repeat time
     ratios a/b. The two are timed alternately, so each ratio compares runs made under the same machine load
     (on a shared 2-core machine throughput drifts by 30% within a minute)."""
-    compile_a, compile_b = _seconds(a, a_args), _seconds(b, b_args)
+    compile_a, compile_b = seconds(a, a_args), seconds(b, b_args)
     times_a, times_b = [], []
     for _ in range(repeats):
-        times_a.append(_seconds(a, a_args))
-        times_b.append(_seconds(b, b_args))
+        times_a.append(seconds(a, a_args))
+        times_b.append(seconds(b, b_args))
     ratio = float(np.median(np.asarray(times_a) / np.asarray(times_b)))
     return compile_a, min(times_a), compile_b, min(times_b), ratio
 
@@ -44,12 +45,7 @@ def bench(name: str, batch: int, repeats: int) -> str:
     policy = ppo.init_params(ppo.PPOConfig(), family, jax.random.PRNGKey(0)).policy
     actions = 0.5 * jax.random.normal(jax.random.PRNGKey(1), (family.max_steps, batch, family.action_size))
 
-    @jax.jit
-    def raw(rng, actions):
-        state = jax.vmap(family.reset, (0, None))(jax.random.split(rng, batch), task)
-        step = jax.vmap(family.step, (0, 0, None))
-        _, rewards = jax.lax.scan(lambda s, a: _raw_body(step, s, a, task), state, actions)
-        return rewards
+    raw = make_raw(family, task, batch)
 
     @jax.jit
     def roll(rng, policy):
@@ -63,9 +59,22 @@ def bench(name: str, batch: int, repeats: int) -> str:
             f"rollout_compile_s={roll_compile:.1f} best_ratio={raw_s / roll_s:.3f} ratio={ratio:.3f}")
 
 
-def _raw_body(step, state, action, task):
-    nxt = step(state, action, task)
-    return nxt, nxt.reward
+def make_raw(family, task, batch: int):
+    """``raw(rng, actions f32[T, batch, A]) -> rewards``: ``batch`` fresh episodes of ``task`` stepped with the
+    precomputed ``actions`` by vmapped ``family.step`` in one jitted ``lax.scan``, no policy: the simulator alone
+    (also the baseline of ``bench_pearl.py``)."""
+    step = jax.vmap(family.step, (0, 0, None))
+
+    def body(state, action):
+        nxt = step(state, action, task)
+        return nxt, nxt.reward
+
+    @jax.jit
+    def raw(rng, actions):
+        state = jax.vmap(family.reset, (0, None))(jax.random.split(rng, batch), task)
+        return jax.lax.scan(body, state, actions)[1]
+
+    return raw
 
 
 def main():
