@@ -6,9 +6,9 @@ the GPU mostly idle, or on different machines: give each its own ``--out`` with 
 evaluation, grid, device count); the methods must not overlap and must have finished. Chunking may differ (a
 slow method checkpointing after every task beside others in chunks of 5: the methods' results do not depend on
 it); held-out measurements are then at each method's own chunk boundaries, which the report plots as they are,
-and the merged ``run.json`` lists each method's ``chunk_tasks`` under ``run.chunk_tasks_by_method``. The merged directory
-gets ``run.json`` and ``raw/``, then ``results.json``, the plots and ``significance.md`` as if one run had run
-them all (checkpoints stay in the sources).
+and the merged ``run.json`` lists each method's ``chunk_tasks`` under ``run.chunk_tasks_by_method``. The merged
+directory gets ``run.json`` and ``raw/``, then ``results.json``, the plots and ``significance.md`` as if one run
+had run them all (checkpoints stay in the sources).
 
     python experiments/merge_runs.py runs/hc20 runs/hc20-a runs/hc20-b [--baseline ppo_tl] [--methods comps ppo_tl]
 """

@@ -75,6 +75,34 @@ def check_meta_gradient():
     return _check_meta_gradient
 
 
+def _kill_and_resume(runner, argv: list, out: pathlib.Path, killed, full: pathlib.Path) -> None:
+    """Runs ``argv`` into ``out`` with each method in ``killed`` stopped after its first chunk (its checkpoint 1 is
+    all there is), resumes the run with ``--resume``, and asserts that every method's raw results equal those of
+    the uninterrupted run in ``full``, array for array (wall time apart)."""
+    from jcomps import experiment
+
+    args = runner.parse_args(argv + ["--out", str(out)])
+    experiment.open_run_dir(str(out), experiment.describe(args.run, args.eval, args.configs), resume=False)
+    for name in killed:
+        assert experiment.run_method(str(out), name, args.run, args.eval, args.configs[name], resume=False,
+                                     programs=runner.PROGRAMS, stop_after_chunks=1) is None
+        assert sorted(os.listdir(out / "checkpoints" / name)) == ["1"]
+    runner.main(["--out", str(out), "--resume"])
+    for name in args.run.methods:
+        with np.load(full / "raw" / f"{name}.npz") as fa, np.load(out / "raw" / f"{name}.npz") as fb:
+            assert fa.files == fb.files
+            for key in fa.files:
+                if key != "seconds":
+                    np.testing.assert_array_equal(fa[key], fb[key], err_msg=f"{name} {key}")
+
+
+@pytest.fixture(scope="session")
+def kill_and_resume():
+    """``check(runner, argv, out, killed, full)``: a run "killed" after the first chunk of the methods ``killed``
+    and resumed equals the uninterrupted run ``full`` (test_experiment, test_baselines, test_pearl)."""
+    return _kill_and_resume
+
+
 console = _script_fixture("console", "progress", "The runner's progress lines and TensorBoard logs.")
 runner = _script_fixture("runner", "run_sequence", "The runner (its ``parse_args`` and ``main``).")
 merge_runs = _script_fixture("merge_runs", "merge_runs", "Merging runs (its ``merge``).")

@@ -3,7 +3,6 @@ Progress & Compress (frozen knowledge base, EWC penalty, distillation, lateral g
 
 import dataclasses
 import json
-import os
 
 import chex
 import jax
@@ -11,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jcomps import envs, experiment, methods, networks, ppo
+from jcomps import envs, methods, networks, ppo
 from jcomps.methods import maml_tl, pnc
 
 OBS, ACT, N = 3, 2, 12
@@ -252,18 +251,5 @@ def test_baselines_run_end_to_end_with_samples_to_success(baselines_run):
     assert (baselines_run / "plots" / "samples_to_success.png").stat().st_size > 1000
 
 
-def test_killed_and_resumed_baselines_equal_the_uninterrupted_run(runner, baselines_run, tmp_path):
-    out = tmp_path / "killed"
-    args = runner.parse_args(TINY_RUN + ["--out", str(out)])
-    experiment.open_run_dir(str(out), experiment.describe(args.run, args.eval, args.configs), resume=False)
-    for name in ("maml_tl", "pnc"):  # "killed" after the first chunk of each
-        assert experiment.run_method(str(out), name, args.run, args.eval, args.configs[name], resume=False,
-                                     programs=runner.PROGRAMS, stop_after_chunks=1) is None
-        assert sorted(os.listdir(out / "checkpoints" / name)) == ["1"]
-    runner.main(["--out", str(out), "--resume"])
-    for name in ("maml_tl", "pnc"):
-        with np.load(baselines_run / "raw" / f"{name}.npz") as fa, np.load(out / "raw" / f"{name}.npz") as fb:
-            assert fa.files == fb.files
-            for key in fa.files:
-                if key != "seconds":
-                    np.testing.assert_array_equal(fa[key], fb[key], err_msg=f"{name} {key}")
+def test_killed_and_resumed_baselines_equal_the_uninterrupted_run(runner, baselines_run, tmp_path, kill_and_resume):
+    kill_and_resume(runner, TINY_RUN, tmp_path / "killed", ["maml_tl", "pnc"], baselines_run)

@@ -71,20 +71,9 @@ def test_results_schema(full_run):
     assert results["significance"]["baseline"] == "comps"
 
 
-def test_killed_and_resumed_run_equals_the_uninterrupted_one(runner, full_run, tmp_path):
-    out = tmp_path / "killed"
-    args = runner.parse_args(TINY + RUN + ["--out", str(out)])
-    experiment.open_run_dir(str(out), experiment.describe(args.run, args.eval, args.configs), resume=False)
-    # "Kill" comps after its first chunk: its checkpoint 1 exists, nothing else.
-    assert experiment.run_method(str(out), "comps", args.run, args.eval, args.configs["comps"], resume=False,
-                                 programs=runner.PROGRAMS, stop_after_chunks=1) is None
-    assert sorted(os.listdir(out / "checkpoints" / "comps")) == ["1"]
-    runner.main(["--out", str(out), "--resume"])
-    for name in ("comps", "ppo_tl"):
-        a, b = _raw(full_run, name), _raw(out, name)
-        assert a.keys() == b.keys()
-        for key in a:
-            np.testing.assert_array_equal(a[key], b[key], err_msg=f"{name} {key}")
+def test_killed_and_resumed_run_equals_the_uninterrupted_one(runner, full_run, tmp_path, kill_and_resume):
+    # "Kill" comps after its first chunk (its checkpoint 1 exists, nothing else); ppo_tl runs on the resume.
+    kill_and_resume(runner, TINY + RUN, tmp_path / "killed", ["comps"], full_run)
 
 
 def test_unreadable_checkpoint_falls_back_to_the_one_before(runner, full_run, tmp_path):

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jcomps import acting, buffers, continual, envs, experiment, methods
+from jcomps import acting, buffers, continual, envs, methods
 from jcomps.methods import pearl
 
 TINY = pearl.PEARLConfig(num_trajectories=2, budget=1, num_updates=1, minibatch_size=8, meta_batch=2, tau=0.05,
@@ -248,19 +248,8 @@ def test_pearl_runs_end_to_end_from_the_cli(pearl_run):
     assert run["methods"]["pearl"]["context_size"] == 4 and run["methods"]["pearl"]["hidden_sizes"] == [8, 8]
 
 
-def test_killed_and_resumed_pearl_equals_the_uninterrupted_run(runner, pearl_run, tmp_path):
-    out = tmp_path / "killed"
-    args = runner.parse_args(TINY_RUN + ["--out", str(out)])
-    experiment.open_run_dir(str(out), experiment.describe(args.run, args.eval, args.configs), resume=False)
-    assert experiment.run_method(str(out), "pearl", args.run, args.eval, args.configs["pearl"], resume=False,
-                                 programs=runner.PROGRAMS, stop_after_chunks=1) is None
-    assert sorted(os.listdir(out / "checkpoints" / "pearl")) == ["1"]
-    runner.main(["--out", str(out), "--resume"])
-    with np.load(pearl_run / "raw" / "pearl.npz") as fa, np.load(out / "raw" / "pearl.npz") as fb:
-        assert fa.files == fb.files
-        for key in fa.files:
-            if key != "seconds":
-                np.testing.assert_array_equal(fa[key], fb[key], err_msg=key)
+def test_killed_and_resumed_pearl_equals_the_uninterrupted_run(runner, pearl_run, tmp_path, kill_and_resume):
+    kill_and_resume(runner, TINY_RUN, tmp_path / "killed", ["pearl"], pearl_run)
 
 
 def test_render_replays_pearl_with_each_task_latent(render, pearl_run, tmp_path):
