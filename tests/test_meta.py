@@ -12,6 +12,7 @@ import pytest
 
 from jcomps import buffers, meta, networks, progress
 from jcomps.acting import Trajectory
+from jcomps.numerics import masked_mean
 
 T, OBS, ACT, SLOTS, SKILLED, OFF = 4, 2, 1, 3, 3, 4
 CONFIG = meta.MetaConfig(inner_trajectories=3, skilled_trajectories=2, inner_learning_rate=0.5, num_meta_steps=20,
@@ -213,3 +214,48 @@ def test_sequential_outer_update_follows_algorithm_1():
 def test_bad_meta_config_names_the_field(field, value):
     with pytest.raises(ValueError, match=field):
         meta.MetaConfig(**{field: value})
+
+
+@pytest.mark.parametrize("vtrace_baseline", [False, True])
+def test_standardised_inner_advantages(vtrace_baseline):
+    """``normalize_advantages`` standardises the raw advantages over the task's valid samples, then weights them
+    by the same clipped importance weights as the raw reading; an affine change of the rewards' scale and zero
+    leaves the standardised unweighted advantages unchanged (with V from the same rewards' scale: zero here)."""
+    stores = _stores(8)
+    policy, value = _params()
+    batch = jax.tree.map(lambda x: x[0], meta.sample_batches(CONFIG, stores, jax.random.PRNGKey(0)))
+    off = batch.off._replace(mask=batch.off.mask.at[0].set(0.0))  # one trajectory masked out
+    log_prob = networks.policy_log_prob(policy, off.traj.obs, off.traj.action)
+    values, bootstrap = jnp.zeros_like(log_prob), jnp.zeros_like(off.traj.last_obs[:, 0])
+    mask = off.traj.valid * off.mask[None, :]
+    for importance_sampling in (False, True):
+        base = dataclasses.replace(CONFIG, vtrace_baseline=vtrace_baseline, importance_sampling=importance_sampling)
+        raw, targets = meta._vtrace_terms(base, log_prob, values, bootstrap, off)
+        normed, targets_n = meta._vtrace_terms(dataclasses.replace(base, normalize_advantages=True), log_prob,
+                                               values, bootstrap, off)
+        np.testing.assert_allclose(targets, targets_n)
+        weights = (jnp.minimum(jnp.exp(log_prob - off.traj.log_prob), base.pg_rho_bar) if importance_sampling
+                   else jnp.ones_like(log_prob))
+        unweighted = normed / weights
+        assert abs(float(masked_mean(unweighted, mask))) < 1e-5
+        np.testing.assert_allclose(float(jnp.sqrt(masked_mean(jnp.square(unweighted), mask))), 1.0, rtol=1e-4)
+        # Proportional to the raw advantages (the same weights multiply both) up to the shift and scale.
+        raw_unweighted = raw / weights
+        mean = masked_mean(raw_unweighted, mask)
+        std = jnp.sqrt(masked_mean(jnp.square(raw_unweighted - mean), mask))
+        np.testing.assert_allclose(np.asarray(unweighted * mask), np.asarray((raw_unweighted - mean) / std * mask),
+                                   rtol=1e-4, atol=1e-5)
+    if not vtrace_baseline:
+        config = dataclasses.replace(CONFIG, vtrace_baseline=False, importance_sampling=False,
+                                     normalize_advantages=True)
+        a, _ = meta._vtrace_terms(config, log_prob, values, bootstrap, off)
+        scaled = off._replace(traj=off.traj._replace(reward=7.0 * off.traj.reward))
+        b, _ = meta._vtrace_terms(config, log_prob, values, bootstrap, scaled)
+        np.testing.assert_allclose(np.asarray(a * mask), np.asarray(b * mask), rtol=1e-4, atol=1e-5)
+
+
+def test_the_unweighted_rungs_standardise_and_the_weighted_do_not():
+    from jcomps import methods
+
+    for name, expected in [("gmps", True), ("gmps_ppo", True), ("gmps_ppo_is", False), ("comps", False)]:
+        assert methods.default_config(name, "ant_goal").meta.normalize_advantages is expected, name

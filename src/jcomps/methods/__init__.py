@@ -5,10 +5,12 @@ A registered method is a constructor and its default config *instance*: the rung
 
 - ``ppo``: single-task PPO from a random initialisation on every task (no transfer);
 - ``ppo_tl``: PPO+TL, PPO on each task with the parameters carried to the next (the paper's baseline);
-- ``gmps``: the meta step without importance weights, V-trace or warm start, and GMPS's RL step: vanilla
-  on-policy policy gradient (one full-batch gradient step per iteration, no ratio clipping);
+- ``gmps``: the meta step without importance weights, V-trace or warm start (its inner advantages standardised
+  per task, as in GMPS's code), and GMPS's RL step: vanilla on-policy policy gradient (one full-batch gradient
+  step per iteration, no ratio clipping);
 - ``gmps_ppo``: as ``gmps`` with our PPO as the RL step;
-- ``gmps_ppo_is``: + the importance-sampled inner gradient with the V-trace baseline (no warm start);
+- ``gmps_ppo_is``: + the importance-sampled inner gradient with the V-trace baseline, raw advantages (no warm
+  start);
 - ``gmps_ppo_is_x2``: + twice the skilled data (|D*_i| = 40; no warm start);
 - ``comps``: GMPS + PPO + IS + the FTML warm start, CoMPS.
 
@@ -48,7 +50,9 @@ class Registered(NamedTuple):
     rl_step: dict = {}
 
 
-_NO_IS = meta.MetaConfig(importance_sampling=False, vtrace_baseline=False)
+# The unweighted inner step standardises its advantages per task, as GMPS's code does (``center_adv``): raw
+# advantages made GMPS+PPO's meta step diverge on Ant Goal (docs/design.md, "GMPS+PPO's inner advantages").
+_NO_IS = meta.MetaConfig(importance_sampling=False, vtrace_baseline=False, normalize_advantages=True)
 _VANILLA_PG = {"num_updates": 1, "minibatch_size": 0, "surrogate": "vanilla"}
 
 REGISTRY: dict[str, Registered] = {
@@ -81,13 +85,17 @@ def config_class(name: str):
 def default_config(name: str, family: Family | str):
     """Method ``name``'s default config on ``family``: its registered default with the family's calibrated PPO
     settings (``jcomps.ppo.FAMILY_DEFAULTS``) for the RL step, apart from the fields that define the method's RL
-    step (``Registered.rl_step``)."""
+    step (``Registered.rl_step``), and the family's meta-step settings (``jcomps.meta.FAMILY_DEFAULTS``)."""
     entry = _registered(name)
     if not hasattr(entry.default, "ppo"):
         return entry.default
     family_name = family if isinstance(family, str) else family.name
     rl = dataclasses.replace(ppo.family_config(family_name, entry.default.ppo), **entry.rl_step)
-    return dataclasses.replace(entry.default, ppo=rl)
+    config = dataclasses.replace(entry.default, ppo=rl)
+    if isinstance(getattr(config, "meta", None), meta.MetaConfig):
+        config = dataclasses.replace(config, meta=dataclasses.replace(config.meta,
+                                                                      **meta.FAMILY_DEFAULTS.get(family_name, {})))
+    return config
 
 
 def make(name: str, family: Family, config=None, progress_fn: Optional[ProgressFn] = None) -> Method:
