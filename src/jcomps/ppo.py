@@ -116,6 +116,7 @@ FAMILY_DEFAULTS: dict[str, dict[str, Any]] = {
     "cheetah_vel": {**_MUJOCO_DEFAULTS, "init_std": 0.15},
     "ant_goal": {**_MUJOCO_DEFAULTS, "init_std": 0.1},
     "ant_dir": {**_MUJOCO_DEFAULTS, "init_std": 0.15},
+    "metaworld": {**_MUJOCO_DEFAULTS},
 }
 
 

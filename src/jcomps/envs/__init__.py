@@ -1,6 +1,7 @@
 """Task families and their task sequences.
 
-Families, by the names used everywhere (CLI included): ``point_goal``, ``cheetah_vel``, ``ant_goal``, ``ant_dir``.
+Families, by the names used everywhere (CLI included): ``point_goal``, ``cheetah_vel``, ``ant_goal``, ``ant_dir``,
+``metaworld``.
 
 >>> fam = make("point_goal")
 >>> tasks = sequence(fam, "non-stationary", num_tasks=5)   # stacked task pytree, leading axis 5
@@ -15,7 +16,7 @@ import numpy as np
 
 from jcomps.envs.base import EnvState, Family, strong, validate_values
 
-FAMILIES = ("point_goal", "cheetah_vel", "ant_goal", "ant_dir")
+FAMILIES = ("point_goal", "cheetah_vel", "ant_goal", "ant_dir", "metaworld")
 SEQUENCE_KINDS = ("stationary", "non-stationary")
 
 
@@ -30,6 +31,10 @@ def make(name: str) -> Family:
         from jcomps.envs import mujoco
 
         return mujoco.make(name)
+    if name == "metaworld":
+        from jcomps.envs import metaworld
+
+        return metaworld.make()
     raise ValueError(f"unknown family {name!r}; allowed: {', '.join(FAMILIES)}")
 
 

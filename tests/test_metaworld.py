@@ -1,0 +1,170 @@
+"""The MetaWorld family: the paper's task list and rules on the real ``metaworld`` package, pure host stepping
+that equals MetaWorld's own, reproducible rollouts, and the runner end to end (a handful of steps each)."""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jcomps import acting, envs, methods, ppo
+from jcomps.envs import metaworld as mw
+from jcomps.envs import metaworld_host as host
+
+
+@pytest.fixture(scope="module")
+def family():
+    return envs.make("metaworld")
+
+
+def test_the_sequence_is_the_papers(family):
+    labels = [mw.label(v) for v in envs.sequence_values(family, "non-stationary")]
+    assert len(labels) == 39
+    assert labels[:6] == ["P-0", "B-1", "H-2", "P-3", "B-4", "H-5"]
+    # The paper's "P-1P", "B-1B", "H-2H" are typos for P-15, B-16, H-29 (SPEC).
+    assert labels[15] == "P-15" and labels[16] == "B-16" and labels[29] == "H-29"
+    assert labels[-1] == "H-38"
+    assert [host.ENV_NAMES[i] for i in range(3)] == ["push-wall-v3", "button-press-wall-v3", "hammer-v3"]
+    stationary = envs.sequence_values(family, "stationary", seed=3)
+    assert sorted(stationary.tolist()) == sorted(envs.sequence_values(family).tolist())
+    assert stationary.tolist() != envs.sequence_values(family).tolist()
+
+
+def test_held_out_goal_indices_are_never_in_the_sequence(family):
+    seen = {(int(v) // 100, int(v) % 100) for v in family.task_values}
+    held = [(int(v) // 100, int(v) % 100) for v in family.held_out_values]
+    assert len(held) == 9 and {e for e, _ in held} == {0, 1, 2}
+    assert not {k for _, k in held} & {k for _, k in seen}
+
+
+def test_the_family_has_the_papers_rules(family):
+    assert (family.max_steps, family.success_threshold, family.default_budget) == (150, 0.2, 500)
+    assert (family.obs_size, family.action_size) == (39, 4)
+    config = methods.default_config("comps", family)
+    assert config.meta.inner_learning_rate == 0.0025
+    assert methods.default_config("comps", "cheetah_vel").meta.inner_learning_rate == 0.005
+
+
+def test_success_rate_counts_trajectories_with_a_success(family):
+    success = np.zeros((150, 5), np.float32)
+    success[3, 0] = 1.0            # one step
+    success[100:, 1] = 1.0         # many steps still count once
+    success[149, 4] = 1.0          # the last step counts
+    assert float(family.success_rate(jnp.asarray(success))) == pytest.approx(3 / 5)
+    assert float(family.success_rate(jnp.zeros((150, 4)))) == 0.0
+
+
+@pytest.mark.parametrize("bad", [150.0, 1.5, -1.0, 300.0])
+def test_task_codes_that_name_no_task_are_refused(family, bad):
+    with pytest.raises(ValueError, match="task code"):
+        family.tasks([bad])
+
+
+def test_host_steps_equal_metaworlds_own_steps():
+    """Our pure step (state in, state out) equals stepping MetaWorld's env object, bit for bit."""
+    from metaworld.env_dict import ALL_V3_ENVIRONMENTS
+
+    rng = np.random.default_rng(0)
+    for env, k in [(0, 3), (2, 5)]:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            ref = ALL_V3_ENVIRONMENTS[host.ENV_NAMES[env]]()
+            ref.set_task(host.variants(env)[k])
+            ref.max_path_length = 150
+            obs_ref, _ = ref.reset()
+        state, obs = host.reset([env], [k])
+        np.testing.assert_array_equal(obs[0], obs_ref)
+        for _ in range(6):
+            action = rng.uniform(-1, 1, (1, 4)).astype(np.float32)
+            obs_ref, reward_ref, terminated, _, info = ref.step(action[0])
+            state, obs, reward, success = host.step([env], [k], state, action)
+            np.testing.assert_array_equal(obs[0], obs_ref)
+            assert reward[0] == reward_ref and success[0] == info["success"] and not terminated
+
+
+def test_a_variant_starts_from_the_same_state_every_reset_and_variants_differ():
+    a, obs_a = host.reset([0, 0], [3, 3])
+    np.testing.assert_array_equal(a[0], a[1])
+    np.testing.assert_array_equal(obs_a[0], obs_a[1])
+    variant = host._get(0, 3).env
+    variant.reset()
+    goal = variant._target_pos.copy()
+    variant.reset()
+    np.testing.assert_array_equal(variant._target_pos, goal)
+    assert not np.array_equal(host._get(0, 6).env._target_pos, goal)
+    # The goal is hidden (ML1's tasks): the last three observation entries are zero.
+    np.testing.assert_array_equal(obs_a[0][-3:], 0.0)
+
+
+def test_a_pool_of_workers_steps_like_one_process():
+    rng = np.random.default_rng(1)
+    env, variant = np.array([0, 1, 2, 0]), np.array([0, 1, 2, 3])
+    state, _ = host.reset(env, variant)
+    pool = host.Pool(workers=2)
+    try:
+        s1, s2 = state, state
+        for _ in range(3):
+            action = rng.uniform(-1, 1, (4, 4)).astype(np.float32)
+            a, b = host.step(env, variant, s1, action), pool.step(env, variant, s2, action)
+            for x, y in zip(a, b):
+                np.testing.assert_array_equal(x, y)
+            s1, s2 = a[0], b[0]
+    finally:
+        pool.close()
+    with pytest.raises(ValueError, match="workers"):
+        host.Pool(workers=0)
+
+
+@pytest.fixture(scope="module")
+def rollout_fn(family):
+    config = ppo.family_config("metaworld")
+    params = ppo.init_params(config, family, jax.random.PRNGKey(0))
+    task = envs.task_at(family, 1)
+    return jax.jit(lambda rng: acting.rollout(family, params.policy, task, rng, 2))
+
+
+def test_an_episode_is_truncated_at_150_steps_never_terminated(rollout_fn):
+    traj = rollout_fn(jax.random.PRNGKey(1))
+    assert traj.obs.shape == (150, 2, 39)
+    assert float(jnp.sum(traj.done)) == 0.0 and float(jnp.min(traj.valid)) == 1.0
+    assert traj.last_obs.shape == (2, 39)
+
+
+def test_rollouts_reproduce_from_their_key(rollout_fn):
+    a, b, c = (rollout_fn(jax.random.PRNGKey(k)) for k in (1, 1, 2))
+    np.testing.assert_array_equal(a.obs, b.obs)
+    np.testing.assert_array_equal(a.reward, b.reward)
+    assert not np.array_equal(a.obs, c.obs)
+
+
+TINY_RUN = ["--family", "metaworld", "--methods", "comps", "--num-tasks", "2", "--seeds", "2",
+            "--chunk-tasks", "1", "--budget", "2", "--num-trajectories", "2", "--hidden-sizes", "8", "8",
+            "--num-updates", "2", "--minibatch-size", "8", "--heldout-iterations", "0", "--heldout-budget", "0",
+            "--backward-tasks", "1", "--set", "comps.meta.num_meta_steps=1", "--set", "comps.meta.num_outer_steps=1",
+            "--set", "comps.max_tasks=2", "--set", "comps.num_offpolicy=2", "--set", "comps.meta.inner_trajectories=2",
+            "--set", "comps.meta.skilled_trajectories=2"]
+
+
+@pytest.fixture(scope="module")
+def metaworld_run(runner, tmp_path_factory):
+    out = tmp_path_factory.mktemp("metaworld") / "full"
+    runner.main(TINY_RUN + ["--out", str(out)])
+    return out
+
+
+def test_the_runner_runs_metaworld_end_to_end(metaworld_run):
+    results = json.loads((metaworld_run / "results.json").read_text())
+    m = results["methods"]["comps"]
+    assert np.asarray(m["iterations_to_success"]).shape == (2, 2)
+    assert m["env_steps_per_iteration"] == 2 * 150
+    run = json.loads((metaworld_run / "run.json").read_text())
+    assert run["methods"]["comps"]["meta"]["inner_learning_rate"] == 0.0025
+
+
+def test_a_killed_and_resumed_metaworld_run_equals_the_uninterrupted_one(runner, metaworld_run, tmp_path,
+                                                                        kill_and_resume):
+    kill_and_resume(runner, TINY_RUN, tmp_path / "killed", ["comps"], metaworld_run)
