@@ -116,6 +116,10 @@ def render(run_dir: str, methods_=None, seed=None, tasks=None, mean=False, episo
     description = report.read_description(run_dir)
     run = description["run"]
     family = envs.make(run["family"])
+    if family.name == "metaworld":
+        raise experiment.RunError("render.py draws the MJX families with brax's viewer and Point Goal as a plot; "
+                                  "MetaWorld runs on MuJoCo's C library, whose renderer needs OpenGL, and has no "
+                                  "replay here yet")
     specs = _specs(description, family)
     chosen = methods_ or run["methods"]
     for m in chosen:

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import threading
 from typing import NamedTuple
 
 import jax
@@ -70,10 +71,22 @@ def make_task(values: jax.Array) -> MetaWorldTask:
 _STATE_WORDS = 2 * host.STATE_SIZE  # float64 bits as uint32 pairs
 
 
+_POOL_LOCK = threading.Lock()
+
+
 @functools.cache
-def pool() -> host.Pool:
-    """The process-wide stepping pool (workers start on the first batch that needs them)."""
+def _pool() -> host.Pool:
     return host.Pool()
+
+
+def pool() -> host.Pool:
+    """The process-wide stepping pool (workers start on the first batch that needs them); ``pool.cache_clear()``
+    forgets it (close it first), so that the next call reads ``JCOMPS_METAWORLD_WORKERS`` again."""
+    with _POOL_LOCK:  # one pool even when two devices' callbacks ask at once
+        return _pool()
+
+
+pool.cache_clear = _pool.cache_clear
 
 
 def _host_reset(env, variant):
