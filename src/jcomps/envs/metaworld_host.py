@@ -135,15 +135,11 @@ def _get(env: int, variant: int) -> _Variant:
 def reset(env, variant):
     """Initial (state f64[N, STATE_SIZE], obs f64[N, 39]) of each (environment, goal index) pair (1-D arrays)."""
     env, variant = np.asarray(env).reshape(-1), np.asarray(variant).reshape(-1)
-    with _LOCK:
-        return _reset(env, variant)
-
-
-def _reset(env, variant):
     states = np.empty((env.size, STATE_SIZE), np.float64)
     obs = np.empty((env.size, OBS_SIZE), np.float64)
-    for i, (e, k) in enumerate(zip(env, variant)):
-        states[i], obs[i] = _get(e, k).initial
+    with _LOCK:
+        for i, (e, k) in enumerate(zip(env, variant)):
+            states[i], obs[i] = _get(e, k).initial
     return states, obs
 
 
@@ -155,7 +151,7 @@ def step(env, variant, state, action):
     reward = np.empty(n, np.float64)
     success = np.empty(n, np.float64)
     action = np.asarray(action, np.float32)
-    state = np.array(state, np.float64)  # writeable (MuJoCo's setter insists) and never an alias of the input
+    state = np.require(state, np.float64, ["C", "W"])  # MuJoCo's setter insists on writeable; it only reads
     with _LOCK:
         for i in range(n):
             states[i], obs[i], reward[i], success[i] = _get(env[i], variant[i]).step(state[i], action[i])
