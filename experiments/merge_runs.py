@@ -3,7 +3,8 @@
 Methods of one study can run in separate processes, e.g. side by side on one GPU, where a method alone leaves
 the GPU mostly idle, or on different machines: give each its own ``--out`` with the same options apart from
 ``--methods``, then merge. Everything but the methods and the chunking must agree (family, sequence, seeds, tasks,
-evaluation, grid, device count); the methods must not overlap and must have finished. Chunking may differ (a
+evaluation, grid, device count); the methods must not overlap and must have finished (``--partial``: or have
+finished a chunk, and the report covers the tasks every method has finished). Chunking may differ (a
 slow method checkpointing after every task beside others in chunks of 5: the methods' results do not depend on
 it); held-out measurements are then at each method's own chunk boundaries, which the report plots as they are,
 and the merged ``run.json`` lists each method's ``chunk_tasks`` under ``run.chunk_tasks_by_method``. The merged
@@ -11,6 +12,7 @@ directory gets ``run.json`` and ``raw/``, then ``results.json``, the plots and `
 had run them all (checkpoints stay in the sources).
 
     python experiments/merge_runs.py runs/hc20 runs/hc20-a runs/hc20-b [--baseline ppo_tl] [--methods comps ppo_tl]
+    python experiments/merge_runs.py runs/ag10 runs/ag10-comps runs/ag10-ppo_tl --partial   # studies still going
 """
 
 from __future__ import annotations
@@ -68,10 +70,11 @@ def _only(description: dict, names) -> dict:
     return out
 
 
-def merge(out: str, sources: list[str], baseline=None, methods_=None) -> dict:
+def merge(out: str, sources: list[str], baseline=None, methods_=None, partial: bool = False) -> dict:
     """Writes the merged study into ``out`` (a new directory) and its report; returns the report's results.
     ``methods_`` (default: all) takes only these methods from the sources, e.g. the finished ones of a run whose
-    later methods are still going."""
+    later methods are still going. With ``partial``, methods that have not finished bring the tasks they have
+    finished, and the report covers the tasks every method has finished (``report.read_raws``)."""
     if os.path.exists(os.path.join(out, "run.json")):
         raise experiment.RunError(f"{out} already holds a run; merge into a new directory")
     descriptions = [(d, report.read_description(d)) for d in sources]
@@ -87,14 +90,18 @@ def merge(out: str, sources: list[str], baseline=None, methods_=None) -> dict:
     copies = []
     for d, desc in descriptions:
         for _, entry, _ in report._entries(desc):
-            if results.load(d, entry) is None:
-                raise experiment.RunError(f"{d}: {entry} has not finished; continue it with --resume first")
-            copies.append((os.path.join(d, "raw", f"{entry}.npz"), entry))
-    os.makedirs(os.path.join(out, "raw"), exist_ok=True)
-    for src, entry in copies:
-        shutil.copy2(src, os.path.join(out, "raw", f"{entry}.npz"))
+            if results.load(d, entry) is not None:
+                copies.append((results.path(d, entry), results.path(out, entry)))
+            elif partial and results.load_partial(d, entry) is not None:
+                copies.append((results.partial_path(d, entry), results.partial_path(out, entry)))
+            else:
+                raise experiment.RunError(f"{d}: {entry} has not finished; continue it with --resume first"
+                                          + ("" if partial else ", or merge the tasks done so far with --partial"))
+    for src, dst in copies:
+        os.makedirs(os.path.dirname(dst), exist_ok=True)
+        shutil.copy2(src, dst)
     experiment._write_json(os.path.join(out, "run.json"), description)
-    return report.write(out, baseline=baseline)
+    return report.write(out, baseline=baseline, partial=partial)
 
 
 def main(argv=None):
@@ -105,9 +112,11 @@ def main(argv=None):
                         help="the method the significance table compares every other one with (default: comps)")
     parser.add_argument("--methods", nargs="+", default=None,
                         help="take only these methods from the sources (default: all; e.g. the finished ones)")
+    parser.add_argument("--partial", action="store_true",
+                        help="merge unfinished runs too: the report covers the tasks every method has finished")
     args = parser.parse_args(argv)
     try:
-        merge(args.out, args.sources, args.baseline, args.methods)
+        merge(args.out, args.sources, args.baseline, args.methods, args.partial)
     except experiment.RunError as err:
         print(f"error: {err}", file=sys.stderr)
         sys.exit(2)

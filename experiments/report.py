@@ -2,6 +2,7 @@
 
     python experiments/report.py runs/point_goal-20261125-210000
     python experiments/report.py runs/ladder --baseline gmps_ppo      # compare every method with gmps_ppo
+    python experiments/report.py runs/ag10 --partial   # a stopped run: the tasks every method has finished
 """
 
 from __future__ import annotations
@@ -18,9 +19,11 @@ def main(argv=None):
     parser.add_argument("--baseline", default=None, metavar="METHOD",
                         help="the method the significance table compares every other one with (default: comps when "
                              "the run has it)")
+    parser.add_argument("--partial", action="store_true",
+                        help="report an unfinished run on the tasks every method has finished so far")
     args = parser.parse_args(argv)
     try:
-        results = report.write(args.run_dir, baseline=args.baseline)
+        results = report.write(args.run_dir, baseline=args.baseline, partial=args.partial)
     except experiment.RunError as err:
         print(f"error: {err}", file=sys.stderr)
         sys.exit(2)

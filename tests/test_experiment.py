@@ -125,6 +125,35 @@ def test_report_regenerates_the_results(full_run, tmp_path):
         report.write(str(copy), baseline="gmps")
 
 
+def test_a_stopped_run_reports_the_tasks_every_method_has_finished(runner, merge_runs, full_run, tmp_path):
+    out = tmp_path / "stopped"
+    args = runner.parse_args(TINY + RUN + ["--out", str(out)])
+    experiment.open_run_dir(str(out), experiment.describe(args.run, args.eval, args.configs), resume=False)
+    for name, chunks in (("comps", 2), ("ppo_tl", 1)):  # stopped after 2 and 1 of the 3 tasks
+        experiment.run_method(str(out), name, args.run, args.eval, args.configs[name], resume=False,
+                              programs=runner.PROGRAMS, stop_after_chunks=chunks)
+    with pytest.raises(experiment.RunError, match="comps has not finished; .* with --partial"):
+        report.write(str(out))
+    got = report.write(str(out), partial=True)
+    assert got["partial"] == {"tasks": 1, "of": 3, "tasks_done": {"comps": 2, "ppo_tl": 1}}
+    full = json.loads((full_run / "results.json").read_text())
+    for name in ("comps", "ppo_tl"):
+        mine, theirs = got["methods"][name], full["methods"][name]
+        assert mine["iterations_to_success"] == [row[:1] for row in theirs["iterations_to_success"]]
+        assert mine["heldout"]["after_tasks"] == [0, 1]
+        assert mine["heldout"]["adapted_return"] == [row[:2] for row in theirs["heldout"]["adapted_return"]]
+    assert (out / "significance.md").read_text().startswith("Unfinished run: tasks 1-1 of 3")
+    # Merged with --partial, the same report; without it, the merge says what to do.
+    with pytest.raises(experiment.RunError, match="comps has not finished; .* --partial"):
+        merge_runs.merge(str(tmp_path / "m"), [str(out)])
+    merged = merge_runs.merge(str(tmp_path / "m2"), [str(out)], partial=True)
+    assert merged["methods"] == got["methods"] and merged["partial"] == got["partial"]
+    # A method that has not finished a chunk leaves nothing to report.
+    os.remove(results.partial_path(str(out), "ppo_tl"))
+    with pytest.raises(experiment.RunError, match="ppo_tl has not finished a chunk of tasks yet"):
+        report.write(str(out), partial=True)
+
+
 def test_iqm_and_its_stratified_bootstrap_interval():
     rng = np.random.default_rng(0)
     scores = rng.normal(50.0, 10.0, (5, 4))

@@ -9,7 +9,9 @@ A run directory holds:
   chunk of tasks. A program is a method (``checkpoints/<method>``), or with a grid one per combination of its
   shape-changing values (``checkpoints/<method>@hidden_sizes=64x32``).
 - ``raw/<entry>.npz``: all metrics of a results entry (a method, or a method at a grid point) once its program
-  is done: a ``jcomps.results.RawResults``, the input of ``jcomps.report``.
+  is done: a ``jcomps.results.RawResults``, the input of ``jcomps.report``. Until then
+  ``raw/partial/<entry>.npz`` holds the tasks finished so far, rewritten after every chunk
+  (``report.py --partial`` reports a stopped run from them).
 - ``results.json``, ``plots/*.png``, ``significance.md``: written by ``jcomps.report`` at the end.
 
 Per program there is one compiled chunk program: ``vmap`` over the members of a device, ``shard_map`` over
@@ -379,6 +381,25 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
             progress_fn({"event": "resumed", "program": name, "step": step,
                          "tasks_done": min(next_chunk * program.chunk, run.num_tasks), "num_tasks": run.num_tasks})
 
+    # The reported members of each point (padding members are dropped).
+    slices = [(slice(p * run.seeds, (p + 1) * run.seeds),) for p in range(len(points))]
+    after_tasks = np.asarray([min(c * program.chunk, run.num_tasks) for c in range(num_chunks + 1)], np.int64)
+
+    def entry_raws(chunks_done: int, seconds_: float) -> dict:
+        """{entry key: RawResults} of the tasks of the first ``chunks_done`` chunks."""
+        upto, measured = int(after_tasks[chunks_done]), chunks_done + 1
+        raws_ = {}
+        for p, point in enumerate(points):
+            task = jax.tree.map(lambda x: np.asarray(x[slices[p]][:, :upto]), per_task)
+            held = jax.tree.map(lambda x: np.asarray(x[slices[p]][:, :measured]), heldout)
+            raws_[point.key] = results.RawResults(task.task, task.backward_returns, task.backward_valid, held,
+                                                  after_tasks[:measured], float(seconds_), int(devices))
+        return raws_
+
+    if 0 < next_chunk < num_chunks:  # a run stopped by older code has no partial results yet
+        for key, raw in entry_raws(next_chunk, seconds).items():
+            results.save_partial(out, key, raw)
+
     member_names = [f"{points[p].key} seed {s}" for p, s in zip(member_point, member_seed)]
     progress_fn({"event": "start", "program": name, "family": run.family, "sequence": run.sequence,
                  "num_tasks": run.num_tasks, "seeds": run.seeds, "grid_points": len(points), "padding": padded - real,
@@ -393,8 +414,6 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
         kind = next((k for k in ("iteration", "meta_step", "compress_iteration") if k in metrics), "meta_step")
         progress_fn({"event": kind, "program": name, **{k: v.item() for k, v in metrics.items()}})
 
-    # The reported members of each point (padding members are dropped).
-    slices = [(slice(p * run.seeds, (p + 1) * run.seeds),) for p in range(len(points))]
     seeds = list(range(run.seed, run.seed + run.seeds))
     chunks_run = 0
     program.receiver = receive
@@ -411,6 +430,9 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
             jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), c + 1), np.asarray(src)), heldout, out_h)
             elapsed = seconds + time.time() - start_time
             checkpoints.save(c + 1, record(states, per_task, heldout, c + 1, elapsed))
+            if c + 1 < num_chunks:  # what a report of the unfinished run shows (report.py --partial)
+                for key, raw in entry_raws(c + 1, elapsed).items():
+                    results.save_partial(out, key, raw)
             for p, point in enumerate(points):
                 progress_fn({"event": "chunk", "program": name, "entry": point.key, "start": start, "stop": stop,
                              "num_tasks": run.num_tasks, "seeds": seeds,
@@ -422,13 +444,9 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
     finally:
         program.receiver = None
     total = seconds + time.time() - start_time
-    raws = {}
-    after_tasks = np.asarray([min(c * program.chunk, run.num_tasks) for c in range(num_chunks + 1)], np.int64)
-    for p, point in enumerate(points):
-        mine = jax.tree.map(lambda x: np.asarray(x[slices[p]]), (per_task, heldout))
-        raws[point.key] = results.RawResults(mine[0].task, mine[0].backward_returns, mine[0].backward_valid,
-                                             mine[1], after_tasks, float(total), int(devices))
-        results.save(out, point.key, raws[point.key])
+    raws = entry_raws(num_chunks, total)
+    for key, raw in raws.items():
+        results.save(out, key, raw)
     progress_fn({"event": "done", "program": name, "seconds": total})
     return raws
 

@@ -341,7 +341,10 @@ def _plots(results: dict, raws: dict, directory: str) -> list[str]:
     ax.set(xlabel="task", ylabel="normalized reward (1: nothing forgotten)",
            title=f"Backward transfer on the previous {k} tasks")
     integer_ticks(ax)
-    ax.legend()
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend()
+    else:  # one task (or a report cut to one): nothing learnt before it to forget
+        ax.text(0.5, 0.5, "no earlier tasks to measure", transform=ax.transAxes, ha="center", color="gray")
     save(fig, "backward_transfer.png")
 
     fig, (ax_its, ax) = plt.subplots(1, 2, figsize=(11, 4))
@@ -432,20 +435,45 @@ def read_description(out: str) -> dict:
         return json.load(f)
 
 
-def write(out: str, baseline: Optional[str] = None) -> Optional[dict]:
-    """(Re)writes ``results.json``, the plots and ``significance.md`` of run directory ``out``; the significance
-    table compares ``baseline`` (default: ``comps`` when the run has it) with every other method."""
-    description = read_description(out)
-    raws = {}
+def read_raws(out: str, description: dict, partial: bool = False) -> tuple[dict, Optional[dict]]:
+    """{entry key: RawResults} of run directory ``out``, and None. With ``partial``, an unfinished entry
+    contributes the tasks it has finished (``raw/partial/``), every entry is cut to the tasks all of them have
+    finished, and the second value says so: {"tasks": k, "of": N, "tasks_done": {entry: tasks}} (None when every
+    entry has finished). RunError names an entry with nothing to report."""
+    raws, done = {}, {}
     for method, name, _ in _entries(description):
         raw = results_.load(out, name)
+        if raw is None and partial:
+            raw = results_.load_partial(out, name)
+            if raw is None:
+                raise experiment.RunError(f"{out}: {name} has not finished a chunk of tasks yet; nothing to report")
         if raw is None:
-            raise experiment.RunError(f"{out}: {name} has not finished; continue the run with --resume")
-        raws[name] = raw
+            raise experiment.RunError(f"{out}: {name} has not finished; continue the run with --resume, or report "
+                                      "the tasks every method has finished with --partial")
+        raws[name], done[name] = raw, results_.tasks_done(raw)
+    num_tasks = int(description["run"]["num_tasks"])
+    common = min(done.values())
+    if common == num_tasks:
+        return raws, None
+    return ({name: results_.truncate(raw, common) for name, raw in raws.items()},
+            {"tasks": common, "of": num_tasks, "tasks_done": done})
+
+
+def write(out: str, baseline: Optional[str] = None, partial: bool = False) -> Optional[dict]:
+    """(Re)writes ``results.json``, the plots and ``significance.md`` of run directory ``out``; the significance
+    table compares ``baseline`` (default: ``comps`` when the run has it) with every other method. With
+    ``partial`` an unfinished run is reported on the tasks all its entries have finished (``read_raws``)."""
+    description = read_description(out)
+    raws, cut = read_raws(out, description, partial)
     results = summarize(description, raws, baseline)
+    if cut is not None:
+        results["partial"] = cut
     results["plots"] = [os.path.relpath(p, out) for p in _plots(results, raws, os.path.join(out, "plots"))]
     experiment._write_json(os.path.join(out, "results.json"), results)
     table = grid_table(results)
+    head = "" if cut is None else (
+        f"Unfinished run: tasks 1-{cut['tasks']} of {cut['of']}, the tasks every method has finished (tasks done: "
+        + ", ".join(f"{name} {k}" for name, k in cut["tasks_done"].items()) + ").\n\n")
     with open(os.path.join(out, "significance.md"), "w") as f:
-        f.write(significance_table(results) + ("\n## Grid\n\n" + table if table else ""))
+        f.write(head + significance_table(results) + ("\n## Grid\n\n" + table if table else ""))
     return results

@@ -12,6 +12,7 @@ import os
 import typing
 from typing import NamedTuple, Optional
 
+import jax
 import numpy as np
 
 from jcomps.checkpoint import RunError
@@ -83,18 +84,19 @@ def path(out: str, name: str) -> str:
     return os.path.join(out, "raw", f"{name}.npz")
 
 
-def save(out: str, name: str, raw: RawResults) -> None:
-    """Writes ``raw`` to ``raw/<name>.npz`` atomically."""
-    os.makedirs(os.path.join(out, "raw"), exist_ok=True)
-    target = path(out, name)
+def partial_path(out: str, name: str) -> str:
+    """Where the raw results of the tasks entry ``name`` has finished so far live while its run is unfinished."""
+    return os.path.join(out, "raw", "partial", f"{name}.npz")
+
+
+def _save(target: str, raw: RawResults) -> None:
+    os.makedirs(os.path.dirname(target), exist_ok=True)
     with open(target + ".tmp", "wb") as f:
         np.savez(f, **dict(_leaves("", raw)))
     os.replace(target + ".tmp", target)
 
 
-def load(out: str, name: str) -> Optional[RawResults]:
-    """Entry ``name``'s raw results, or None if it has not finished; RunError if the file cannot be read."""
-    target = path(out, name)
+def _load(target: str, name: str) -> Optional[RawResults]:
     if not os.path.isfile(target):
         return None
     try:
@@ -104,3 +106,45 @@ def load(out: str, name: str) -> Optional[RawResults]:
     except Exception as err:  # noqa: BLE001 - any failure to read means the file is unusable
         raise RunError(f"{target} cannot be read ({type(err).__name__}: {err}); delete it to rerun {name}") from err
     return raw._replace(seconds=float(raw.seconds), devices=int(raw.devices))
+
+
+def save(out: str, name: str, raw: RawResults) -> None:
+    """Writes ``raw`` to ``raw/<name>.npz`` atomically and drops the entry's partial results."""
+    _save(path(out, name), raw)
+    if os.path.exists(partial_path(out, name)):
+        os.remove(partial_path(out, name))
+
+
+def load(out: str, name: str) -> Optional[RawResults]:
+    """Entry ``name``'s raw results, or None if it has not finished; RunError if the file cannot be read."""
+    return _load(path(out, name), name)
+
+
+def save_partial(out: str, name: str, raw: RawResults) -> None:
+    """Writes the raw results of the tasks finished so far (``raw`` covers them only) atomically; the runner
+    rewrites them after every chunk, so that a run stopped before its end can still be reported."""
+    _save(partial_path(out, name), raw)
+
+
+def load_partial(out: str, name: str) -> Optional[RawResults]:
+    """The raw results of the tasks entry ``name`` finished before its run stopped, or None if there are none."""
+    return _load(partial_path(out, name), name)
+
+
+def tasks_done(raw: RawResults) -> int:
+    """How many tasks of the sequence ``raw`` covers."""
+    return int(raw.task.iterations.shape[1])
+
+
+def truncate(raw: RawResults, num_tasks: int) -> RawResults:
+    """``raw`` cut to the first ``num_tasks`` tasks: their metrics, and the held-out measurements made after at
+    most that many tasks."""
+    if not 1 <= num_tasks <= tasks_done(raw):
+        raise ValueError(f"num_tasks must be in [1, {tasks_done(raw)}], got {num_tasks}")
+    keep = raw.heldout_after_tasks <= num_tasks
+    return raw._replace(task=jax.tree.map(lambda x: x[:, :num_tasks], raw.task),
+                        backward_returns=raw.backward_returns[:, :num_tasks],
+                        backward_valid=raw.backward_valid[:, :num_tasks],
+                        heldout=jax.tree.map(lambda x: x[:, keep], raw.heldout),
+                        heldout_after_tasks=raw.heldout_after_tasks[keep])
+
