@@ -111,8 +111,11 @@ def _load(target: str, name: str) -> Optional[RawResults]:
 def save(out: str, name: str, raw: RawResults) -> None:
     """Writes ``raw`` to ``raw/<name>.npz`` atomically and drops the entry's partial results."""
     _save(path(out, name), raw)
-    if os.path.exists(partial_path(out, name)):
-        os.remove(partial_path(out, name))
+    partial = partial_path(out, name)
+    if os.path.exists(partial):
+        os.remove(partial)
+        if not os.listdir(os.path.dirname(partial)):  # a finished run keeps raw/ as it always was
+            os.rmdir(os.path.dirname(partial))
 
 
 def load(out: str, name: str) -> Optional[RawResults]:
