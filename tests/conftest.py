@@ -111,6 +111,18 @@ def kill_and_resume():
     return _kill_and_resume
 
 
+@pytest.fixture(scope="session")
+def tiny_run(runner, tmp_path_factory):
+    """``run(argv, name)``: the runner run with ``argv`` into a fresh ``<name>/full`` directory, which it returns
+    (the module fixtures of tiny end-to-end runs: test_experiment, test_baselines, test_pearl, test_metaworld)."""
+    def run(argv: list, name: str) -> pathlib.Path:
+        out = tmp_path_factory.mktemp(name) / "full"
+        runner.main(argv + ["--out", str(out)])
+        return out
+
+    return run
+
+
 console = _script_fixture("console", "progress", "The runner's progress lines and TensorBoard logs.")
 runner = _script_fixture("runner", "run_sequence", "The runner (its ``parse_args`` and ``main``).")
 merge_runs = _script_fixture("merge_runs", "merge_runs", "Merging runs (its ``merge``).")

@@ -226,10 +226,8 @@ TINY_RUN = ["--methods", "maml_tl", "pnc", "--num-tasks", "3", "--seeds", "2", "
 
 
 @pytest.fixture(scope="module")
-def baselines_run(runner, tmp_path_factory):
-    out = tmp_path_factory.mktemp("baselines") / "full"
-    runner.main(TINY_RUN + ["--out", str(out)])
-    return out
+def baselines_run(tiny_run):
+    return tiny_run(TINY_RUN, "baselines")
 
 
 def test_baselines_run_end_to_end_with_samples_to_success(baselines_run):

@@ -21,11 +21,9 @@ RUN = ["--methods", "comps", "ppo_tl", "--num-tasks", "3", "--seeds", "2", "--ch
 
 
 @pytest.fixture(scope="module")
-def full_run(runner, tmp_path_factory):
+def full_run(tiny_run):
     """An uninterrupted run (compiles the programs that the other tests reuse)."""
-    out = tmp_path_factory.mktemp("runs") / "full"
-    runner.main(TINY + RUN + ["--out", str(out)])
-    return out
+    return tiny_run(TINY + RUN, "runs")
 
 
 def _raw(out, name):

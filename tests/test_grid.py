@@ -29,20 +29,16 @@ def _raw(out, name):
 
 
 @pytest.fixture(scope="module")
-def grid_run(runner, tmp_path_factory):
+def grid_run(tiny_run):
     """An uninterrupted grid run: 2 programs (hidden sizes) of 2 traced learning rates × 2 seeds each."""
-    out = tmp_path_factory.mktemp("grid") / "full"
-    runner.main(TINY + RUN + GRID + ["--out", str(out)])
-    return out
+    return tiny_run(TINY + RUN + GRID, "grid")
 
 
 @pytest.fixture(scope="module")
-def plain_run(runner, tmp_path_factory):
+def plain_run(tiny_run):
     """The same run without a grid, at one of its points (learning rate 0.001, hidden sizes 8). Its ppo_tl
     program is tests/test_experiment.py's, compiled once when both files run in one session."""
-    out = tmp_path_factory.mktemp("grid") / "plain"
-    runner.main(TINY + RUN + ["--learning-rate", "0.001", "--hidden-sizes", "8", "--out", str(out)])
-    return out
+    return tiny_run(TINY + RUN + ["--learning-rate", "0.001", "--hidden-sizes", "8"], "plain")
 
 
 # --- parsing and validation -------------------------------------------------------------------------------------

@@ -150,10 +150,8 @@ TINY_RUN = ["--family", "metaworld", "--methods", "comps", "--num-tasks", "2", "
 
 
 @pytest.fixture(scope="module")
-def metaworld_run(runner, tmp_path_factory):
-    out = tmp_path_factory.mktemp("metaworld") / "full"
-    runner.main(TINY_RUN + ["--out", str(out)])
-    return out
+def metaworld_run(tiny_run):
+    return tiny_run(TINY_RUN, "metaworld")
 
 
 def test_the_runner_runs_metaworld_end_to_end(metaworld_run):

@@ -232,10 +232,8 @@ TINY_RUN = ["--methods", "pearl", "--num-tasks", "3", "--seeds", "2", "--chunk-t
 
 
 @pytest.fixture(scope="module")
-def pearl_run(runner, tmp_path_factory):
-    out = tmp_path_factory.mktemp("pearl") / "full"
-    runner.main(TINY_RUN + ["--out", str(out)])
-    return out
+def pearl_run(tiny_run):
+    return tiny_run(TINY_RUN, "pearl")
 
 
 def test_pearl_runs_end_to_end_from_the_cli(pearl_run):
