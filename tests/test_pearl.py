@@ -212,10 +212,25 @@ def test_auto_alpha_follows_the_entropy_and_contexts_without_next_obs(family):
 
 
 @pytest.mark.parametrize("field,value", [("kl_weight", -1.0), ("tau", 0.0), ("latent_size", 0), ("alpha", 0.0),
-                                         ("meta_batch", 0), ("hidden_sizes", ()), ("policy_reg", -1.0)])
+                                         ("meta_batch", 0), ("hidden_sizes", ()), ("policy_reg", -1.0),
+                                         ("current_slots", -1), ("current_slots", 5)])
 def test_bad_pearl_config_names_the_field(field, value):
     with pytest.raises(ValueError, match=field):
         pearl.PEARLConfig(**{field: value})
+
+
+def test_gradient_steps_draw_seen_slots_uniformly_or_keep_the_current_task():
+    count = jnp.zeros((8,), jnp.int32).at[jnp.array([0, 2, 5])].set(100)
+    keys = jax.random.split(jax.random.PRNGKey(0), 2000)
+    uniform = np.asarray(jax.vmap(lambda k: pearl.draw_slots(pearl.PEARLConfig(max_tasks=8), count, 5, k))(keys))
+    assert set(np.unique(uniform)) == {0, 2, 5}  # only slots that hold data, each about a third of the draws
+    np.testing.assert_allclose(np.bincount(uniform.ravel(), minlength=8)[[0, 2, 5]] / uniform.size, 1 / 3, atol=0.02)
+    cfg = pearl.PEARLConfig(max_tasks=8, current_slots=1)
+    fixed = np.asarray(jax.vmap(lambda k: pearl.draw_slots(cfg, count, 5, k))(keys))
+    assert (fixed[:, 0] == 5).all()  # the task being learnt, in every step
+    np.testing.assert_array_equal(fixed[:, 1:], uniform[:, 1:])  # the rest drawn as before
+    everything = pearl.PEARLConfig(max_tasks=8, current_slots=4)
+    assert (np.asarray(pearl.draw_slots(everything, count, 2, keys[0])) == 2).all()
 
 
 def test_pearl_ignores_the_family_ppo_settings():

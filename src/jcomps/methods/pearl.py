@@ -26,7 +26,8 @@ iteration on task i:
    at or above the threshold; no update follows it);
 3. adds them to slot i;
 4. makes ``num_updates`` gradient steps, each on ``meta_batch`` task slots drawn uniformly from the slots seen so
-   far (i included), with a context of ``context_size`` and a batch of ``minibatch_size`` transitions per slot.
+   far (i included; ``current_slots`` of them can be fixed to slot i), with a context of ``context_size`` and a
+   batch of ``minibatch_size`` transitions per slot.
 
 Everything is fixed-size arrays and ``lax`` loops: vmapped over seeds and checkpointed like every method (the
 buffers are part of the state, so a resume is exact).
@@ -73,6 +74,11 @@ class PEARLConfig:
     """Transitions per task slot in each gradient step's RL batch (oyster: batch_size 256)."""
     meta_batch: int = 4
     """Task slots per gradient step, drawn uniformly from those seen (oyster: 16 tasks of its training set)."""
+    current_slots: int = 0
+    """Of each gradient step's ``meta_batch`` slots, this many are the task being learnt, the rest drawn uniformly
+    from those seen. 0 is oyster's uniform draw, under which the task being learnt gets on average
+    ``meta_batch / i`` of the slots at task i; 1 keeps at least a ``1 / meta_batch`` share of every step for it
+    (the second reading of the paper's continual PEARL, docs/design.md)."""
     context_size: int = 64
     """Transitions in a context (oyster: embedding_batch_size 64)."""
     latent_size: int = 5
@@ -114,6 +120,8 @@ class PEARLConfig:
         for name in ("num_trajectories", "num_updates", "minibatch_size", "meta_batch", "context_size",
                      "latent_size", "buffer_size", "max_tasks"):
             check_field(getattr(self, name) >= 1, name, getattr(self, name), positive_int)
+        check_field(0 <= self.current_slots <= self.meta_batch, "current_slots", self.current_slots,
+                    f"an integer in [0, meta_batch = {self.meta_batch}]")
         check_field(self.budget is None or self.budget >= 1, "budget", self.budget, "None or an integer >= 1")
         for name in ("hidden_sizes", "encoder_hidden_sizes"):
             sizes = getattr(self, name)
@@ -227,6 +235,15 @@ def polyak(target, online, tau):
     return jax.tree.map(lambda t, o: (1.0 - tau) * t + tau * o, target, online)
 
 
+def draw_slots(config: PEARLConfig, count: jax.Array, current, rng: jax.Array) -> jax.Array:
+    """The ``meta_batch`` task slots of one gradient step, i32[meta_batch]: the first ``current_slots`` are
+    ``current`` (the task being learnt), the others drawn uniformly, with replacement, from the slots that hold
+    data (``count`` i32[max_tasks] > 0)."""
+    seen = count > 0
+    slots = jax.random.choice(rng, config.max_tasks, (config.meta_batch,), p=seen / jnp.sum(seen))
+    return slots.at[:config.current_slots].set(current)
+
+
 def sample_context(config: PEARLConfig, replay: buffers.TransitionStore, slot, rng) -> tuple[jax.Array, jax.Array]:
     """``context_size`` transitions of ``slot`` as the encoder's input f32[n, width] and their mask."""
     rows, mask = buffers.transitions_sample(replay, slot, config.context_size, rng)
@@ -327,8 +344,7 @@ def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optio
 
     def gradient_step(state: PEARLState, key: jax.Array):
         k_slots, k_rows, k_ctx, k_critic, k_actor = jax.random.split(key, 5)
-        seen = state.replay.count > 0
-        slots = jax.random.choice(k_slots, config.max_tasks, (config.meta_batch,), p=seen / jnp.sum(seen))
+        slots = draw_slots(config, state.replay.count, state.task_index, k_slots)
         rows, mask = jax.vmap(lambda s, k: buffers.transitions_sample(state.replay, s, config.minibatch_size, k))(
             slots, jax.random.split(k_rows, config.meta_batch))
         contexts, context_mask = jax.vmap(lambda s, k: sample_context(config, state.replay, s, k))(
