@@ -229,6 +229,25 @@ def test_resume_of_a_finished_run_rewrites_nothing_it_has(runner, full_run, caps
         np.testing.assert_array_equal(before[key], after[key])
 
 
+def test_resume_fills_config_fields_added_since_the_run_was_made(runner, full_run, tmp_path, capsys):
+    old = tmp_path / "old"
+    shutil.copytree(full_run, old)
+    run_json = old / "run.json"
+    stored = json.loads(run_json.read_text())
+    del stored["methods"]["comps"]["ppo"]["entropy_coef"]  # as if made before these fields existed
+    del stored["methods"]["comps"]["warm_start"]
+    run_json.write_text(json.dumps(stored))
+    # A value other than the field's default is a difference, named, and nothing is written.
+    with pytest.raises(SystemExit) as info:
+        runner.main(["--out", str(old), "--resume", "--set", "comps.ppo.entropy_coef=0.5"])
+    assert info.value.code == 2 and "entropy_coef" in capsys.readouterr().err
+    assert json.loads(run_json.read_text()) == stored
+    # The default is what the run had: accepted, and recorded.
+    runner.main(["--out", str(old), "--resume"])
+    assert "already finished" in capsys.readouterr().out
+    assert json.loads(run_json.read_text()) == json.loads((full_run / "run.json").read_text())
+
+
 def test_significance_matches_the_t_test_and_detects_equal_groups():
     rng = np.random.default_rng(0)
     x, y = rng.normal(0.0, 1.0, 8), rng.normal(3.0, 1.0, 8)

@@ -111,6 +111,24 @@ def _differences(a, b, prefix="") -> list[str]:
     return [] if a == b else [f"{prefix[:-1]}: run has {a!r}, asked {b!r}"]
 
 
+def _fill_added_fields(stored: dict, asked: dict, default: dict, prefix: str) -> list[str]:
+    """Config fields that a stored run lacks because jcomps added them after the run was made: where the asked
+    value is the field's default (the behaviour the run had, as every added field keeps the old behaviour by
+    default), ``stored`` gets it, in place. Returns the dotted paths filled; other differences are left for
+    :func:`_differences` to report."""
+    filled = []
+    for key, value in asked.items():
+        if not isinstance(default, dict) or key not in default:
+            continue
+        if key not in stored:
+            if value == default[key]:
+                stored[key] = value
+                filled.append(prefix + key)
+        elif isinstance(stored[key], dict) and isinstance(value, dict):
+            filled += _fill_added_fields(stored[key], value, default[key], f"{prefix}{key}.")
+    return filled
+
+
 def _write_json(path, data):
     tmp = path + ".tmp"
     with open(tmp, "w") as f:
@@ -126,11 +144,18 @@ def open_run_dir(out: str, description: dict, resume: bool) -> None:
             raise RunError(f"--resume: {out} holds no run (no run.json); start it without --resume")
         with open(run_json) as f:
             stored = json.load(f)
+        filled = []
+        for name, config in description.get("methods", {}).items():
+            if isinstance(stored.get("methods", {}).get(name), dict):
+                default = _jsonable(methods.default_config(name, description["run"]["family"]))
+                filled += _fill_added_fields(stored["methods"][name], config, default, f"methods.{name}.")
         diff = _differences(stored, description)
         diff = [d + f" (float rounding depends on it: resume with --devices {stored['devices']})"
                 if d.startswith("devices:") else d for d in diff]
         if diff:
             raise RunError(f"--resume: {out} was made with another config: " + "; ".join(diff[:8]))
+        if filled:  # record them, so that the run's description is whole again
+            _write_json(run_json, stored)
         return
     if os.path.exists(run_json) or os.path.exists(os.path.join(out, "results.json")):
         raise RunError(f"{out} already holds a run; choose another --out, or add --resume to continue it")
