@@ -6,7 +6,9 @@ random actions, no JAX: what the simulator and MetaWorld's reward code cost alon
 the pure host step that loads and reads MuJoCo's state) on ``workers`` processes. Each ``workers`` case is
 compared with raw stepping on as many processes, each stepping its share of the batch (started together after
 their set-up, timed by the slowest), so ``ratio`` is our cost against the simulator's at equal parallelism (goal
->= 0.9). One ``key=value`` line per case::
+>= 0.9). Per batched step of the fastest rollout, ``host_step_ms`` is the time inside the host step (the callback:
+MetaWorld's step, our state load and read, the pool's round trip and lockstep wait) and ``outside_ms`` the rest
+(the policy, the scan, the callback's dispatch), against ``raw_ms_per_step``. One ``key=value`` line per case::
 
     python benchmarks/bench_metaworld.py [--envs 0 1 2] [--batch 20] [--workers 1 2] [--repeats 5]
 """
@@ -80,6 +82,18 @@ def main():
     from jcomps.envs import metaworld as mw
     from jcomps.envs import metaworld_host as host
 
+    # Time spent inside the host step (the callback), so each line splits our cost into the host step and what
+    # runs outside it (the policy, the scan, the callback's dispatch). Wrapped before any rollout is traced.
+    inside = [0.0]
+    host_step = mw._host_step
+
+    def timed_host_step(*a):
+        start = time.perf_counter()
+        out = host_step(*a)
+        inside[0] += time.perf_counter() - start
+        return out
+
+    mw._host_step = timed_host_step
     family = envs.make("metaworld")
     policy = ppo.init_params(ppo.family_config("metaworld"), family, jax.random.PRNGKey(0)).policy
     steps = args.batch * host.MAX_STEPS
@@ -95,17 +109,23 @@ def main():
             start = time.perf_counter()
             jax.block_until_ready(rollout(jax.random.PRNGKey(0)))  # compile, worker start, variant set-up
             first = time.perf_counter() - start
-            ours, raw = [], []
+            ours, raw, host_s = [], [], []
             for r in range(args.repeats):  # alternate, so both see the same machine load
+                inside[0] = 0.0
                 start = time.perf_counter()
                 jax.block_until_ready(rollout(jax.random.PRNGKey(r + 1)))
                 ours.append(time.perf_counter() - start)
+                host_s.append(inside[0])
                 raw.append(raw_loop(env, env, args.batch, r) if workers == 1
                            else raw_parallel(env, env, args.batch, workers))
             ratio = float(np.median(np.asarray(raw) / np.asarray(ours)))
+            best = int(np.argmin(ours))  # per batched step, in the fastest rollout
+            host_ms, outside_ms = (1e3 * host_s[best] / host.MAX_STEPS,
+                                   1e3 * (ours[best] - host_s[best]) / host.MAX_STEPS)
             print(f"env={host.ENV_NAMES[env]} batch={args.batch} workers={workers} steps={steps} "
                   f"raw_steps_per_s={steps / min(raw):.0f} rollout_steps_per_s={steps / min(ours):.0f} "
-                  f"first_call_s={first:.1f} ratio={ratio:.3f}", flush=True)
+                  f"raw_ms_per_step={1e3 * min(raw) / host.MAX_STEPS:.3f} host_step_ms={host_ms:.3f} "
+                  f"outside_ms={outside_ms:.3f} first_call_s={first:.1f} ratio={ratio:.3f}", flush=True)
     mw.pool().close()
 
 
