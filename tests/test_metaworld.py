@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jcomps import acting, envs, methods, ppo
+from jcomps import acting, envs, host_acting, methods, networks, ppo
 from jcomps.envs import metaworld as mw
 from jcomps.envs import metaworld_host as host
 
@@ -117,6 +117,99 @@ def test_a_pool_of_workers_steps_like_one_process():
         pool.close()
     with pytest.raises(ValueError, match="workers"):
         host.Pool(workers=0)
+
+
+def test_a_pool_of_workers_rolls_out_like_one_process():
+    """Whole episodes (two policies, three environments) split over two processes equal one process's, bit for bit."""
+    rng = np.random.default_rng(2)
+    policies = [host_acting.plain(networks.init_actor_critic(jax.random.PRNGKey(i), 39, 4, (8,), 0.5).policy)
+                for i in range(2)]
+    group, episode = np.array([0, 0, 1, 1, 1]), np.array([0, 1, 0, 1, 2])
+    env, variant = np.array([0, 1, 2, 0, 1]), np.array([0, 1, 2, 3, 4])
+    noise = rng.standard_normal((5, 4, 4)).astype(np.float32)
+    one = host.rollout("gaussian", policies, group, episode, env, variant, noise)
+    pool = host.Pool(workers=2)
+    try:
+        two = pool.rollout("gaussian", policies, group, episode, env, variant, noise)
+    finally:
+        pool.close()
+    assert [x.shape for x in one] == [(5, 5, 39), (5, 4, 4), (5, 4), (5, 4), (5, 4)]
+    for x, y in zip(one, two):
+        np.testing.assert_array_equal(x, y)
+    with pytest.raises(ValueError, match="no host twin of kind 'nope'"):
+        host.rollout("nope", policies, group, episode, env, variant, noise)
+
+
+def _perturbed(tree, seed):
+    """Every leaf of ``tree`` moved by noise, so zero biases and identity normalisers are exercised too."""
+    leaves, treedef = jax.tree.flatten(tree)
+    keys = jax.random.split(jax.random.PRNGKey(seed), len(leaves))
+    out = jax.tree.unflatten(treedef, [x + 0.3 * jax.random.normal(k, x.shape, x.dtype) if x.ndim else x + 5.0
+                                       for x, k in zip(leaves, keys)])
+    if isinstance(out, dict) and "obs_norm" in out:  # a variance stays positive
+        out["obs_norm"] = out["obs_norm"]._replace(var=jnp.abs(out["obs_norm"].var) + 1e-4)
+    return out
+
+
+def _policies_with_twins():
+    """(name, act, policy) for every act that has a NumPy twin: the Gaussian MLP, Progress & Compress's active
+    column (laterals from a knowledge base) and PEARL's tanh-Gaussian with a per-episode z."""
+    from jcomps.methods import pearl
+
+    plain_policy = _perturbed(networks.init_actor_critic(jax.random.PRNGKey(0), 39, 4, (16, 8), 0.5).policy, 1)
+    kb = _perturbed(networks.init_actor_critic(jax.random.PRNGKey(2), 39, 4, (16, 8), 0.5).policy, 3)
+    column = {**_perturbed({**networks.init_actor_critic(jax.random.PRNGKey(4), 39, 4, (16, 8), 0.5).policy,
+                            "adaptors": networks.adaptors_init(jax.random.PRNGKey(5), (39, 16, 8, 4))}, 6),
+              "kb": kb}
+    config = pearl.PEARLConfig(hidden_sizes=(16, 8))
+    fam = envs.make("metaworld")
+    nets = pearl.make_networks(config, fam)
+    net = _perturbed(nets.sac.policy_network.init(jax.random.PRNGKey(7)), 8)
+    z = jax.random.normal(jax.random.PRNGKey(9), (6, config.latent_size))
+    return [("gaussian", networks.action_from_noise, plain_policy), ("column", networks.action_from_noise, column),
+            ("tanh_gaussian", pearl.make_act(nets), {"net": net, "z": z})]
+
+
+def test_numpy_twins_act_like_the_jax_policies():
+    obs = np.asarray(30.0 * jax.random.normal(jax.random.PRNGKey(10), (6, 39)))  # some beyond the clip
+    noise = np.asarray(jax.random.normal(jax.random.PRNGKey(11), (6, 4)))
+    for name, act, policy in _policies_with_twins():
+        want_action, want_log_prob = jax.jit(act)(policy, obs, noise)
+        plain = host_acting.plain(jax.tree.map(np.asarray, policy))
+        action, log_prob = host_acting.act(act.host_kind, plain, obs, noise, np.arange(6))
+        assert action.dtype == log_prob.dtype == np.float32
+        np.testing.assert_allclose(action, want_action, rtol=1e-5, atol=1e-5, err_msg=name)
+        np.testing.assert_allclose(log_prob, want_log_prob, rtol=1e-4, atol=1e-4, err_msg=name)  # float32 sums
+        # Row by row: an episode's action does not depend on which episodes share its batch.
+        rows = np.array([4, 1])
+        part = host_acting.act(act.host_kind, plain, obs[rows], noise[rows], rows)
+        np.testing.assert_array_equal(part[0], action[rows], err_msg=name)
+        np.testing.assert_array_equal(part[1], log_prob[rows], err_msg=name)
+
+
+def _act_without_twin(policy, obs, noise):
+    return networks.action_from_noise(policy, obs, noise)
+
+
+def test_host_rollouts_equal_rollouts_stepped_through_the_family(family):
+    """The host rollout (the policy's NumPy twin, two seeds under vmap) takes the steps that stepping through
+    ``family.step`` with the JAX policy takes, to float32 rounding; an ``act`` without a twin steps."""
+    config = ppo.family_config("metaworld")
+    policies = jax.vmap(lambda k: ppo.init_params(config, family, k).policy)(jax.random.split(jax.random.PRNGKey(0)))
+    task = envs.task_at(family, 2)
+    keys = jax.random.split(jax.random.PRNGKey(3))
+
+    def run(act):
+        return jax.jit(jax.vmap(lambda p, k: acting.rollout(family, p, task, k, 2, act)))(policies, keys)
+
+    fast, stepped = run(networks.action_from_noise), run(_act_without_twin)
+    assert fast.obs.shape == stepped.obs.shape == (2, 150, 2, 39)
+    for field in ("obs", "action", "log_prob", "reward", "success"):
+        np.testing.assert_allclose(getattr(fast, field)[:, :40], getattr(stepped, field)[:, :40], rtol=1e-4,
+                                   atol=1e-4, err_msg=field)
+    np.testing.assert_array_equal(fast.done, 0.0)
+    np.testing.assert_array_equal(fast.valid, 1.0)
+    assert not np.array_equal(fast.obs[0], fast.obs[1])
 
 
 @pytest.fixture(scope="module")

@@ -47,8 +47,18 @@ methods; a method with another policy, like PEARL's tanh-Gaussian, brings its ow
 def rollout(family: Family, policy: Any, task, rng: jax.Array, num_envs: int,
             act: ActFn = networks.action_from_noise) -> Trajectory:
     """Runs ``num_envs`` fresh episodes of ``task`` for ``family.max_steps`` steps with ``policy`` (default: a
-    Gaussian policy; ``act`` makes the actions of any other kind)."""
+    Gaussian policy; ``act`` makes the actions of any other kind).
+
+    A family simulated on the host (``family.host_rollout``) runs the whole rollout there when ``act`` has a
+    NumPy twin (its ``host_kind``, see ``jcomps.host_acting``); the policy's noise is drawn here either way.
+    """
     reset_rng, step_rng = jax.random.split(rng)
+    kind = getattr(act, "host_kind", None)
+    if family.host_rollout is not None and kind is not None:
+        noise = jax.random.normal(step_rng, (family.max_steps, num_envs, family.action_size), jnp.float32)
+        obs, action, log_prob, reward, success, last_obs = family.host_rollout(kind, policy, task, noise)
+        zeros = jnp.zeros(reward.shape, jnp.float32)  # the host families never terminate (time limits truncate)
+        return Trajectory(obs, action, log_prob, reward, zeros, zeros + 1.0, success, last_obs)
     state = jax.vmap(family.reset, (0, None))(jax.random.split(reset_rng, num_envs), task)
     step = jax.vmap(family.step, (0, 0, None))
 

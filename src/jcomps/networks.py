@@ -218,6 +218,9 @@ def action_from_noise(policy: dict, obs: jax.Array, noise: jax.Array) -> tuple[j
     return action, log_prob
 
 
+action_from_noise.host_kind = "gaussian"  # its NumPy twin, for host-simulated families (jcomps.host_acting)
+
+
 def value_apply(value: list, obs: jax.Array) -> jax.Array:
     """V(obs) f32[...] for ``obs`` f32[..., obs_size] as the network sees it (already normalised)."""
     return mlp_apply(value, obs)[..., 0]

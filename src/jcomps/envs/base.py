@@ -90,6 +90,11 @@ class Family:
         absorbing-termination rule.
       system: the brax ``System`` the MuJoCo families simulate (``EnvState.sim`` is its pipeline state), for
         rendering with ``brax.io.html``; None for Point Goal.
+      host_rollout: for a family simulated on the host (MetaWorld), whole rollouts run there:
+        ``host_rollout(kind, policy, task, noise f32[T, B, A]) -> (obs f32[T, B, O], action f32[T, B, A],
+        log_prob f32[T, B], reward f32[T, B], success f32[T, B], last_obs f32[B, O])`` with the policy evaluated
+        by its NumPy twin ``kind`` (``jcomps.host_acting``). ``acting.rollout`` uses it when the ``act`` has a
+        twin, and steps through ``step`` otherwise. None: rollouts always step through ``step``.
     """
 
     name: str
@@ -107,6 +112,7 @@ class Family:
     step_fn: Callable[[EnvState, jax.Array, Any], EnvState]
     can_terminate: bool = False
     system: Any = None
+    host_rollout: Any = None
 
     def reset(self, rng: jax.Array, task) -> EnvState:
         """Starts an episode of ``task``; ``rng`` is a PRNG key. Returns the initial ``EnvState``."""

@@ -21,6 +21,7 @@ observation (ML1's tasks): as in the other families, the task must be inferred f
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import functools
 import threading
@@ -30,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jcomps import host_acting
 from jcomps.envs import base
 from jcomps.envs import metaworld_host as host
 
@@ -89,6 +91,26 @@ def pool() -> host.Pool:
 pool.cache_clear = _pool.cache_clear
 
 
+_HOST_THREAD = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="jcomps-metaworld")
+
+
+def _on_host_thread(callback):
+    """Runs ``callback`` on one Python thread of its own, not on the XLA thread that calls back.
+
+    MuJoCo's bindings re-take the GIL with the thread state Python registered for the OS thread; on an XLA pool
+    thread that is not the state JAX's callback holds the GIL with, and loading a model there deadlocked (seen
+    twice in the benchmark's full run: the thread waited on the GIL it held itself). A thread Python started has one
+    state. Only ``reset`` calls MuJoCo in this process; steps and rollouts run in the pool's worker processes.
+    """
+
+    @functools.wraps(callback)
+    def run(*args):
+        return _HOST_THREAD.submit(callback, *args).result()
+
+    return run
+
+
+@_on_host_thread
 def _host_reset(env, variant):
     shape = np.shape(env)
     states, obs = host.reset(np.array(env, np.int64).reshape(-1), np.array(variant, np.int64).reshape(-1))
@@ -98,8 +120,6 @@ def _host_reset(env, variant):
 
 def _host_step(env, variant, sim, action):
     shape = np.shape(env)
-    # Copies, not views of XLA's buffers: MetaWorld's many small NumPy operations on views of them ran 2.3x
-    # slower (the whole step: 3.9 s against 1.7 s for 20 Button-Press-Wall episodes).
     env, variant = np.array(env, np.int64).reshape(-1), np.array(variant, np.int64).reshape(-1)
     states = np.array(sim, np.uint32).reshape(-1, _STATE_WORDS).view(np.float64)
     action = np.array(action, np.float32).reshape(-1, host.ACTION_SIZE)
@@ -122,6 +142,41 @@ def step(state: base.EnvState, action: jax.Array, task: MetaWorldTask) -> base.E
     sim, obs, reward, success = jax.pure_callback(_host_step, shapes, task.env, task.variant, state.sim, action,
                                                   vmap_method="broadcast_all")
     return base.make_env_state(sim, obs, reward, 0.0, success, state.t)
+
+
+def _host_rollout(kind, policy, env, variant, noise):
+    """The callback of ``host_rollout``: arguments with the leading axes of any vmaps (``broadcast_all``)."""
+    noise = np.asarray(noise, np.float32)
+    lead, (steps, batch, actions) = noise.shape[:-3], noise.shape[-3:]
+    groups = int(np.prod(lead, dtype=np.int64))
+    flat = host_acting.plain(jax.tree.map(lambda x: np.asarray(x).reshape((groups, *np.shape(x)[len(lead):])),
+                                          policy))
+    policies = [jax.tree.map(lambda x, g=g: x[g], flat) for g in range(groups)]
+    env, variant = (np.asarray(x, np.int64).reshape(groups) for x in (env, variant))
+    # Episodes group-major: episode g·B + b is episode b of group g (one policy and task per group).
+    obs, action, log_prob, reward, success = pool().rollout(
+        kind, policies, np.repeat(np.arange(groups), batch), np.tile(np.arange(batch), groups),
+        np.repeat(env, batch), np.repeat(variant, batch),
+        noise.reshape(groups, steps, batch, actions).swapaxes(1, 2).reshape(groups * batch, steps, actions))
+
+    def time_major(x):  # [G·B, T, ...] -> [*lead, T, B, ...]
+        x = x.reshape(groups, batch, *x.shape[1:]).swapaxes(1, 2)
+        return np.ascontiguousarray(x).reshape(*lead, *x.shape[1:])
+
+    obs = time_major(obs)
+    return (obs[..., :steps, :, :], time_major(action), time_major(log_prob), time_major(reward),
+            time_major(success), np.ascontiguousarray(obs[..., steps, :, :]))
+
+
+def host_rollout(kind: str, policy, task: MetaWorldTask, noise: jax.Array):
+    """``Family.host_rollout``: whole episodes on the host (``metaworld_host.rollout`` over the pool), the policy
+    evaluated by its NumPy twin ``kind``; one callback per rollout (per step: ``step``)."""
+    steps, batch, actions = noise.shape
+    f32 = functools.partial(jax.ShapeDtypeStruct, dtype=jnp.float32)
+    shapes = (f32((steps, batch, host.OBS_SIZE)), f32((steps, batch, actions)), f32((steps, batch)),
+              f32((steps, batch)), f32((steps, batch)), f32((batch, host.OBS_SIZE)))
+    return jax.pure_callback(functools.partial(_host_rollout, kind), shapes, policy, task.env, task.variant,
+                             noise, vmap_method="broadcast_all")
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -147,5 +202,5 @@ def make() -> base.Family:
         held_out_values=HELD_OUT, value_range=(0.0, 100.0 * (len(host.ENV_NAMES) - 1) + host.NUM_VARIANTS - 1),
         value_name=(f"a task code 100·e + k: environment e (0 Push-Wall, 1 Button-Press-Wall, 2 Hammer) and goal "
                     f"index k (an integer 0-{host.NUM_VARIANTS - 1})"),
-        make_task=make_task, reset_fn=reset, step_fn=step,
+        make_task=make_task, reset_fn=reset, step_fn=step, host_rollout=host_rollout,
     )

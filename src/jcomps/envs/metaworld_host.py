@@ -16,8 +16,12 @@ uint32 pairs (float64 bits), so nothing is rounded. One env object per (environm
 Python attributes, such as the goal and the reward's normalisers, are fixed by the variant), so a step is
 ``mj_setState`` + MetaWorld's step + ``mj_getState``.
 
-``Pool`` spreads a batch of steps over worker processes, so stepping uses every core; being pure, the result
-does not depend on how the batch is split. This module imports no JAX: the workers stay light.
+``rollout(kind, policies, group, episode, env, variant, noise)`` runs whole episodes here, T_max steps, with
+the policy evaluated by its NumPy twin (``jcomps.host_acting``): the family's ``host_rollout``, one round trip
+per rollout instead of one per step.
+
+``Pool`` spreads a batch of steps or of episodes over worker processes, so stepping uses every core; being pure,
+the result does not depend on how the batch is split. This module imports no JAX: the workers stay light.
 """
 
 from __future__ import annotations
@@ -158,8 +162,45 @@ def step(env, variant, state, action):
     return states, obs, reward, success
 
 
+def rollout(kind: str, policies: list, group, episode, env, variant, noise):
+    """Whole episodes from reset: T = ``noise.shape[1]`` steps of each of N episodes, acting with the NumPy twin
+    ``kind`` of the policy ``policies[group[i]]`` (``host_acting.plain`` containers) on episode i.
+
+    ``episode`` i32[N] is each episode's index within its own rollout (PEARL's per-episode z); ``noise``
+    f32[N, T, A] is the policy's standard-normal noise. Returns (obs f32[N, T + 1, 39] (the last is the
+    observation after the last step), action f32[N, T, A] (before the clip to [-1, 1] that the env applies),
+    log_prob f32[N, T], reward f32[N, T], success f32[N, T]).
+    """
+    from jcomps import host_acting
+
+    env, variant, group = (np.asarray(x).reshape(-1) for x in (env, variant, group))
+    episode = np.asarray(episode).reshape(-1)
+    noise = np.asarray(noise, np.float32)
+    n, steps = noise.shape[:2]
+    states, obs0 = reset(env, variant)
+    obs = np.empty((n, steps + 1, OBS_SIZE), np.float32)
+    obs[:, 0] = obs0
+    action = np.empty((n, steps, ACTION_SIZE), np.float32)
+    log_prob = np.empty((n, steps), np.float32)
+    reward = np.empty((n, steps), np.float32)
+    success = np.empty((n, steps), np.float32)
+    rows = [(g, np.flatnonzero(group == g)) for g in np.unique(group)]
+    with _LOCK:
+        sims = [_get(e, k) for e, k in zip(env, variant)]
+        for t in range(steps):
+            for g, r in rows:
+                action[r, t], log_prob[r, t] = host_acting.act(kind, policies[g], obs[r, t], noise[r, t], episode[r])
+            clipped = np.clip(action[:, t], -1.0, 1.0)
+            for i, sim in enumerate(sims):
+                states[i], obs[i, t + 1], reward[i, t], success[i, t] = sim.step(states[i], clipped[i])
+    return obs, action, log_prob, reward, success
+
+
+_JOBS = {"step": step, "rollout": rollout}
+
+
 def _worker(conn) -> None:
-    """A pool worker: steps the batches it is sent until it is sent None or the caller goes away."""
+    """A pool worker: runs the jobs it is sent, ``(name, args)``, until it is sent None or the caller goes away."""
     while True:
         try:
             message = conn.recv()
@@ -168,14 +209,15 @@ def _worker(conn) -> None:
         if message is None:
             return
         try:
-            conn.send(("ok", step(*message)))
+            name, args = message
+            conn.send(("ok", _JOBS[name](*args)))
         except Exception as e:  # noqa: BLE001 - reported to the caller, which raises it
             conn.send(("error", f"{type(e).__name__}: {e}"))
 
 
 def default_workers() -> int:
-    """Processes that step in parallel (the calling process included): ``JCOMPS_METAWORLD_WORKERS`` or the
-    number of cores this process may use."""
+    """Worker processes that step in parallel: ``JCOMPS_METAWORLD_WORKERS`` or the number of cores this process
+    may use."""
     value = os.environ.get("JCOMPS_METAWORLD_WORKERS")
     if value is not None:
         if not value.isdigit() or int(value) < 1:
@@ -185,12 +227,14 @@ def default_workers() -> int:
 
 
 class Pool:
-    """Steps batches of MetaWorld environments on ``workers`` processes (the caller's included).
+    """Steps batches of MetaWorld environments on ``workers`` worker processes.
 
-    The batch is cut into contiguous parts; the caller steps the first itself. Workers run this file as a
-    script (so they import neither JAX nor the caller's ``__main__``: multiprocessing's ``spawn`` would re-run
-    an unguarded script) and talk over a socket pair; they start on the first batch big enough to share and
-    end when the caller closes the pool or exits. Thread-safe (one batch at a time).
+    The batch is cut into contiguous parts, one per worker; the caller only sends and receives. (It used to step
+    a part itself; in a process that has imported JAX, MetaWorld steps ran 5-10% slower than in a light one,
+    which cost the 2-worker Push-Wall benchmark its last 10%; see docs/design.md.) Workers run this file as a
+    script (so they import neither JAX nor the caller's ``__main__``: multiprocessing's ``spawn`` would re-run an
+    unguarded script) and talk over a socket pair; they start on the first batch that needs them and end when
+    the caller closes the pool or exits. Thread-safe (one batch at a time).
     """
 
     def __init__(self, workers: Optional[int] = None):
@@ -213,26 +257,41 @@ class Pool:
 
     def step(self, env, variant, state, action):
         """``step`` of the whole batch, spread over the pool."""
-        n = len(env)
+        return self._run("step", len(env), lambda cut: (env[cut], variant[cut], state[cut], action[cut]))
+
+    def rollout(self, kind: str, policies: list, group, episode, env, variant, noise):
+        """``rollout`` of the whole batch of episodes, spread over the pool (each worker gets only the policies
+        of its own episodes)."""
+        group = np.asarray(group)
+
+        def share(cut):
+            used = np.unique(group[cut])
+            return (kind, [policies[g] for g in used], np.searchsorted(used, group[cut]), episode[cut], env[cut],
+                    variant[cut], noise[cut])
+
+        return self._run("rollout", len(env), share)
+
+    def _run(self, name: str, n: int, share):
+        """Job ``name`` on contiguous parts of a batch of ``n`` (``share(cut)`` gives a part's arguments), one part
+        per worker process; the parts' results are concatenated."""
         parts = min(self.workers, n)
-        if parts <= 1:
-            return step(env, variant, state, action)
         with self._lock:
-            self._start(parts - 1)
+            self._start(parts)
             bounds = np.linspace(0, n, parts + 1).astype(int)
-            cuts = [slice(bounds[i], bounds[i + 1]) for i in range(parts)]
-            for conn, cut in zip(self._conns, cuts[1:]):
-                conn.send((env[cut], variant[cut], state[cut], action[cut]))
-            results = [step(env[cuts[0]], variant[cuts[0]], state[cuts[0]], action[cuts[0]])]
-            for conn in self._conns[:parts - 1]:
+            for conn, i in zip(self._conns, range(parts)):
+                conn.send((name, share(slice(bounds[i], bounds[i + 1]))))
+            replies = []
+            for conn in self._conns[:parts]:
                 try:
-                    kind, value = conn.recv()
+                    replies.append(conn.recv())
                 except (EOFError, OSError) as e:
-                    raise RuntimeError(f"a metaworld worker process died ({type(e).__name__})") from e
+                    replies.append(("died", f"a worker process died ({type(e).__name__})"))
+            if any(kind == "died" for kind, _ in replies):
+                self.close()  # the next job starts fresh workers
+            for kind, value in replies:
                 if kind != "ok":
                     raise RuntimeError(f"metaworld worker failed: {value}")
-                results.append(value)
-        return tuple(np.concatenate(parts_) for parts_ in zip(*results))
+        return tuple(np.concatenate(parts_) for parts_ in zip(*(value for _, value in replies)))
 
     def close(self) -> None:
         for conn in self._conns:

@@ -194,6 +194,7 @@ def make_act(nets: Networks):
         pre = loc + (jax.nn.softplus(scale) + dist._min_std) * dist._var_scale * noise
         return jnp.tanh(pre), dist.log_prob(params, pre)
 
+    act.host_kind = "tanh_gaussian"  # its NumPy twin, for host-simulated families (jcomps.host_acting)
     return act
 
 
