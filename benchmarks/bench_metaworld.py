@@ -10,9 +10,10 @@ every method runs it, on ``workers`` processes (the caller's included):
 - ``path=step``: the per-step path (one ``pure_callback`` and one worker round trip per step, the policy in JAX),
   which an ``act`` without a twin falls back to.
 
-Each ``workers`` case is compared with raw stepping on as many processes, each replaying its share of the batch
-(started together after their set-up, timed by the slowest), so ``ratio`` is our cost against the simulator's at
-equal parallelism (goal >= 0.9). One ``key=value`` line per case::
+Each ``workers`` case is compared with raw stepping on as many fresh processes, each replaying its share of the
+batch (started together after their set-up, timed by the slowest), so ``ratio`` is our cost against the
+simulator's at equal parallelism (goal >= 0.9). Fresh processes for raw stepping, because our workers are light
+processes too: MetaWorld steps 5-10% slower in a process that has imported JAX (docs/design.md). One ``key=value`` line per case::
 
     python benchmarks/bench_metaworld.py [--envs 0 1 2] [--batch 20] [--workers 1 2] [--paths rollout step]
 """
@@ -116,8 +117,7 @@ def main():
                     start = time.perf_counter()
                     actions = np.asarray(jax.block_until_ready(rollout(jax.random.PRNGKey(r + 1))))
                     ours.append(time.perf_counter() - start)
-                    raw.append(raw_loop(env, env, actions) if workers == 1
-                               else raw_parallel(env, env, actions, workers))
+                    raw.append(raw_parallel(env, env, actions, workers))
                 ratio = float(np.median(np.asarray(raw) / np.asarray(ours)))
                 print(f"env={host.ENV_NAMES[env]} path={path} batch={args.batch} workers={workers} steps={steps} "
                       f"raw_steps_per_s={steps / min(raw):.0f} rollout_steps_per_s={steps / min(ours):.0f} "
