@@ -212,6 +212,24 @@ def test_host_rollouts_equal_rollouts_stepped_through_the_family(family):
     assert not np.array_equal(fast.obs[0], fast.obs[1])
 
 
+def test_every_twin_rolls_out_like_its_jax_act(family):
+    """Each act with a NumPy twin (PEARL's with a per-episode z) takes, in a host rollout, the steps its JAX act
+    takes through ``family.step``, to float32 rounding (the first 10 steps)."""
+    task = envs.task_at(family, 0)
+    for name, act, policy in _policies_with_twins():
+        if "z" in policy:
+            policy = {**policy, "z": policy["z"][:2]}
+
+        def act_without_twin(p, o, n, act=act):
+            return act(p, o, n)
+
+        fast, stepped = (jax.jit(lambda k, a=a: acting.rollout(family, policy, task, k, 2, a))(jax.random.PRNGKey(1))
+                         for a in (act, act_without_twin))
+        for field in ("obs", "action", "log_prob", "reward"):
+            np.testing.assert_allclose(getattr(fast, field)[:10], getattr(stepped, field)[:10], rtol=1e-3,
+                                       atol=1e-3, err_msg=f"{name}: {field}")
+
+
 @pytest.fixture(scope="module")
 def rollout_fn(family):
     config = ppo.family_config("metaworld")
