@@ -277,3 +277,22 @@ def test_the_runner_runs_metaworld_end_to_end(metaworld_run):
 def test_a_killed_and_resumed_metaworld_run_equals_the_uninterrupted_one(runner, metaworld_run, tmp_path,
                                                                         kill_and_resume):
     kill_and_resume(runner, TINY_RUN, tmp_path / "killed", ["comps"], metaworld_run)
+
+
+def test_a_metaworld_run_is_the_same_whatever_the_number_of_workers(runner, metaworld_run, tmp_path, monkeypatch):
+    """The tiny run again with another number of stepping processes gives the same raw results, array for array."""
+    workers = 1 if host.default_workers() != 1 else 2
+    mw.pool().close()
+    mw.pool.cache_clear()
+    monkeypatch.setenv("JCOMPS_METAWORLD_WORKERS", str(workers))
+    try:
+        runner.main(TINY_RUN + ["--out", str(tmp_path / "other")])
+        assert mw.pool().workers == workers
+    finally:
+        mw.pool().close()
+        mw.pool.cache_clear()  # the next use starts a pool of the default size
+    with np.load(metaworld_run / "raw" / "comps.npz") as fa, np.load(tmp_path / "other" / "raw" / "comps.npz") as fb:
+        assert fa.files == fb.files
+        for key in fa.files:
+            if key != "seconds":
+                np.testing.assert_array_equal(fa[key], fb[key], err_msg=key)
