@@ -171,6 +171,9 @@ def _policies_with_twins():
 
 
 def test_numpy_twins_act_like_the_jax_policies():
+    # The twins' copies of the normaliser's constants (host_acting imports no JAX, so it cannot import them).
+    assert (host_acting.OBS_CLIP, host_acting.OBS_STD_MIN) == (np.float32(networks.OBS_CLIP),
+                                                               np.float32(networks.OBS_STD_MIN))
     obs = np.asarray(30.0 * jax.random.normal(jax.random.PRNGKey(10), (6, 39)))  # some beyond the clip
     noise = np.asarray(jax.random.normal(jax.random.PRNGKey(11), (6, 4)))
     for name, act, policy in _policies_with_twins():

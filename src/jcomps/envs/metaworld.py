@@ -21,7 +21,6 @@ observation (ML1's tasks): as in the other families, the task must be inferred f
 
 from __future__ import annotations
 
-import concurrent.futures
 import dataclasses
 import functools
 import threading
@@ -91,29 +90,12 @@ def pool() -> host.Pool:
 pool.cache_clear = _pool.cache_clear
 
 
-_HOST_THREAD = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="jcomps-metaworld")
-
-
-def _on_host_thread(callback):
-    """Runs ``callback`` on one Python thread of its own, not on the XLA thread that calls back.
-
-    MuJoCo's bindings re-take the GIL with the thread state Python registered for the OS thread; on an XLA pool
-    thread that is not the state JAX's callback holds the GIL with, and loading a model there deadlocked (seen
-    twice in the benchmark's full run: the thread waited on the GIL it held itself). A thread Python started has one
-    state. Only ``reset`` calls MuJoCo in this process; steps and rollouts run in the pool's worker processes.
-    """
-
-    @functools.wraps(callback)
-    def run(*args):
-        return _HOST_THREAD.submit(callback, *args).result()
-
-    return run
-
-
-@_on_host_thread
 def _host_reset(env, variant):
+    # In a worker, like every MuJoCo call: on XLA's callback thread, MuJoCo's bindings re-take the GIL with the
+    # thread state Python registered for that OS thread, not the one JAX's callback holds it with, and loading a
+    # model there deadlocked (twice in the benchmark's full run; the thread waited on the GIL it held itself).
     shape = np.shape(env)
-    states, obs = host.reset(np.array(env, np.int64).reshape(-1), np.array(variant, np.int64).reshape(-1))
+    states, obs = pool().reset(np.array(env, np.int64).reshape(-1), np.array(variant, np.int64).reshape(-1))
     return (np.ascontiguousarray(states).view(np.uint32).reshape(*shape, _STATE_WORDS),
             obs.astype(np.float32).reshape(*shape, host.OBS_SIZE))
 

@@ -196,7 +196,7 @@ def rollout(kind: str, policies: list, group, episode, env, variant, noise):
     return obs, action, log_prob, reward, success
 
 
-_JOBS = {"step": step, "rollout": rollout}
+_JOBS = {"reset": reset, "step": step, "rollout": rollout}
 
 
 def _worker(conn) -> None:
@@ -254,6 +254,10 @@ class Pool:
             theirs.close()
             self._conns.append(Connection(ours.detach()))
             self._procs.append(proc)
+
+    def reset(self, env, variant):
+        """``reset`` of the whole batch, spread over the pool."""
+        return self._run("reset", len(env), lambda cut: (env[cut], variant[cut]))
 
     def step(self, env, variant, state, action):
         """``step`` of the whole batch, spread over the pool."""
