@@ -33,8 +33,9 @@ from jcomps import grid as grids
 
 
 def _episodes(family, act, policy, task, rng, episodes: int, mean):
-    """``episodes`` fresh episodes of ``task``: the first one's simulator states (T_max + 1), every reward and
-    success indicator [T, episodes] and the first two observation components [T + 1, episodes, 2]. ``act`` is the
+    """``episodes`` fresh episodes of ``task``: the first one's simulator states (T_max + 1), every reward, success
+    indicator and whether the step was taken by a live episode [T, episodes] and the first two observation
+    components [T + 1, episodes, 2]. ``act`` is the
     method's ``acting.ActFn``; ``mean`` (f32[], 0 or 1; traced, so both modes share one compilation) replaces the
     policy's noise by zeros (the mean action; PEARL's tanh of its mean)."""
     reset_rng, step_rng = jax.random.split(rng)
@@ -44,13 +45,14 @@ def _episodes(family, act, policy, task, rng, episodes: int, mean):
     def body(state, noise):
         action, _ = act(policy, state.obs, noise * (1.0 - mean))
         nxt = step(state, action, task)
-        return nxt, (jax.tree.map(lambda x: x[0], nxt.sim), nxt.reward, nxt.success, nxt.obs[:, :2])
+        return nxt, (jax.tree.map(lambda x: x[0], nxt.sim), nxt.reward, nxt.success, 1.0 - state.done,
+                     nxt.obs[:, :2])
 
     noise = jax.random.normal(step_rng, (family.max_steps, episodes, family.action_size), jnp.float32)
-    _, (sims, rewards, success, xy) = jax.lax.scan(body, state, noise)
+    _, (sims, rewards, success, valid, xy) = jax.lax.scan(body, state, noise)
     first = jax.tree.map(lambda x: x[0], state.sim)
     sims = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), first, sims)
-    return sims, rewards, success, jnp.concatenate([state.obs[None, :, :2], xy])
+    return sims, rewards, success, valid, jnp.concatenate([state.obs[None, :, :2], xy])
 
 
 def _specs(description: dict, family) -> dict:
@@ -157,9 +159,9 @@ def render(run_dir: str, methods_=None, seed=None, tasks=None, mean=False, episo
                     # meets the policy after the last one learnt
                     policy = (methods.base.policy_for(method, state, jnp.int32(t - 1), jax.random.fold_in(rng, 1))
                               if t <= learnt else state.params.policy)
-                    sims, rewards, success, xy = episode_fn(family, act, policy, task, rng, n_episodes,
+                    sims, rewards, success, valid, xy = episode_fn(family, act, policy, task, rng, n_episodes,
                                                             jnp.float32(mean))
-                    rate = float(family.success_rate(success))
+                    rate = float(family.success_rate(success, valid))
                     ret = float(jnp.mean(jnp.sum(rewards, axis=0)))
                     note = "" if t <= learnt else f", not learnt yet (the policy after task {learnt})"
                     title = (f"{point.key}, seed {seed}, task {t} ({values[t - 1]:g} {unit}){note}: success rate "

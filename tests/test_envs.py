@@ -373,6 +373,26 @@ def test_success_rate_is_mean_over_all_steps():
     fam = envs.make("point_goal")
     success = jnp.array([[1.0, 0.0], [0.0, 0.0], [1.0, 1.0]], jnp.float32)
     np.testing.assert_allclose(fam.success_rate(success), 0.5)
+    # A family that never terminates takes every step: the mask changes nothing.
+    np.testing.assert_allclose(fam.success_rate(success, jnp.array([[1.0, 1.0], [1.0, 0.0], [0.0, 0.0]])), 0.5)
+
+
+def test_ant_dir_success_rate_averages_over_the_steps_taken(ant_dir):
+    # The paper averages "across all samples": an episode that fell has fewer samples, its absorbing steps after
+    # the fall are none. A fall at the first step (the torso lifted out of range), succeeding there, beside an
+    # episode that succeeds at each of its T steps: every sample succeeded.
+    ro = ant_dir
+    fell = ro.rollout(_lift_torso(ro.s0, 1.5), ro.task(0), ro.actions[0])
+    np.testing.assert_array_equal(fell.done, np.ones(T, np.float32))
+    taken = 1.0 - np.concatenate([[0.0], np.asarray(fell.done[:-1])])  # a step is taken from a live state
+    np.testing.assert_array_equal(taken, np.eye(1, T)[0])
+    success = jnp.stack([jnp.asarray(taken), jnp.ones(T)], axis=1)  # [T, 2]
+    valid = jnp.stack([jnp.asarray(taken), jnp.ones(T)], axis=1)
+    np.testing.assert_allclose(float(ro.fam.success_rate(success, valid)), 1.0)
+    np.testing.assert_allclose(float(ro.fam.success_rate(success)), (1 + T) / (2 * T))  # counting every step
+    # The rollouts the methods learn from carry that mask (``Trajectory.valid``) and pass it.
+    half = success.at[:, 1].set(jnp.arange(T) % 2 == 0)
+    np.testing.assert_allclose(float(ro.fam.success_rate(half, valid)), (1 + -(-T // 2)) / (1 + T), rtol=1e-6)
 
 
 # ------------------------------------------------------------------------------------ reward formulas

@@ -326,7 +326,7 @@ def rl_step(config: PPOConfig, family: Family, params: networks.ActorCriticParam
     def body(c: Carry):
         rng, k_roll, k_upd = jax.random.split(c.rng, 3)
         traj = acting.rollout(family, c.params.policy, task, k_roll, config.num_trajectories)
-        success_rate = family.success_rate(traj.success)
+        success_rate = family.success_rate(traj.success, traj.valid)
         mean_return = jnp.mean(jnp.sum(traj.reward, axis=0))
         solved = success_rate >= family.success_threshold
         if progress_fn is not None:

@@ -16,7 +16,7 @@ reward and success are zero. ``EnvState.done`` marks termination only, never tru
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable, NamedTuple
+from typing import Any, Callable, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
@@ -134,13 +134,18 @@ class Family:
         terminated = state.done > 0
         return jax.tree.map(lambda a, b: jnp.where(terminated, a, b), frozen, nxt)
 
-    def success_rate(self, success: jax.Array) -> jax.Array:
-        """Success rate of an iteration: the mean per-step indicator over every step of the batch.
+    def success_rate(self, success: jax.Array, valid: Optional[jax.Array] = None) -> jax.Array:
+        """Success rate of an iteration: the mean per-step indicator over the steps of the batch that were taken.
 
-        ``success`` is f32[T, B] (time-major). Steps after a termination count as failures, so the rate is
-        the fraction of all T_max·B steps spent in the success state, as in the paper.
+        ``success`` is f32[T, B] (time-major); ``valid`` f32[T, B] marks the steps taken by a live episode
+        (``Trajectory.valid``). The paper averages "across all samples": a family that can terminate (Ant
+        Direction) averages over the steps taken, so an episode that fell contributes its steps and no more;
+        the absorbing steps after a fall are not samples. Without ``valid`` (or for a family that never
+        terminates, where every step is taken) it is the mean over all T_max·B steps.
         """
-        return jnp.mean(success)
+        if valid is None or not self.can_terminate:
+            return jnp.mean(success)
+        return jnp.sum(success * valid) / jnp.maximum(jnp.sum(valid), 1.0)
 
     def tasks(self, values) -> Any:
         """Validated task pytree for task parameter ``values`` (a 1-D sequence), stacked on axis 0."""

@@ -165,7 +165,7 @@ def host_rollout(kind: str, policy, task: MetaWorldTask, noise: jax.Array):
 class MetaWorldFamily(base.Family):
     """The MetaWorld family: task codes are checked to name a real task; success counts trajectories."""
 
-    def success_rate(self, success: jax.Array) -> jax.Array:
+    def success_rate(self, success: jax.Array, valid=None) -> jax.Array:
         """The fraction of the batch's trajectories with at least one success step (``success`` f32[T, B])."""
         return jnp.mean(jnp.max(success, axis=0))
 

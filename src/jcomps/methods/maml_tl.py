@@ -162,7 +162,7 @@ def make(family: Family, config: MAMLTLConfig = MAMLTLConfig(), progress_fn: Opt
             pre = ppo.flat_batch(pcfg, params, pre_traj)
             adapted = inner_step(config, params.policy, pre)
             post_traj = acting.rollout(family, adapted, task, k_post, B)
-            success_rate = family.success_rate(post_traj.success)
+            success_rate = family.success_rate(post_traj.success, post_traj.valid)
             mean_return = jnp.mean(jnp.sum(post_traj.reward, axis=0))
             solved = success_rate >= family.success_threshold
             if report is not None:

@@ -396,7 +396,7 @@ def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optio
             z = draw_z(s.encoder, s.replay, slot, k_z, (config.num_trajectories,))
             traj = acting.rollout(family, {**s.params.policy, "z": z}, task, k_roll, config.num_trajectories,
                                   act=act)
-            success_rate = family.success_rate(traj.success)
+            success_rate = family.success_rate(traj.success, traj.valid)
             mean_return = jnp.mean(jnp.sum(traj.reward, axis=0))
             solved = success_rate >= family.success_threshold
             if report is not None:
@@ -445,7 +445,7 @@ def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optio
             z = mu + jnp.sqrt(var) * jax.random.normal(k_z, (config.num_trajectories,) + mu.shape, jnp.float32)
             traj = acting.rollout(family, {**state.params.policy, "z": z}, task, k_roll, config.num_trajectories,
                                   act=act)
-            out = (jnp.mean(jnp.sum(traj.reward, axis=0)), family.success_rate(traj.success))
+            out = (jnp.mean(jnp.sum(traj.reward, axis=0)), family.success_rate(traj.success, traj.valid))
             return (buffers.finite_transitions(traj), jnp.array(True)), out
 
         z = lambda *shape: jnp.zeros((batch,) + shape, jnp.float32)  # noqa: E731
