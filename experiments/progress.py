@@ -34,18 +34,30 @@ class Progress:
         self.iteration = np.zeros(seeds, np.int64)
         self.success = np.zeros(seeds)
         self.meta_loss = np.full(seeds, np.nan)
+        self.meta_health = np.full((seeds, 4), np.nan)  # value l2, value EV on returns, mean |Â|, mean ρ
 
     def record_iteration(self, member: int, task: int, iteration: int, success_rate: float):
         """After every RL iteration of a member."""
         self.task[member], self.iteration[member], self.success[member] = task, iteration, success_rate
         self._throttled(self.line)
 
-    def record_meta_step(self, member: int, task: int, step: int, steps: int, loss: float):
-        """After every outer update of a meta-training phase (between two tasks)."""
+    def record_meta_step(self, member: int, task: int, step: int, steps: int, loss: float,
+                         health: Optional[tuple] = None):
+        """After every outer update of a meta-training phase (between two tasks); ``health``: (value l2, value
+        heads' explained variance on the returns, mean |Â|, mean clipped ρ), means over the seen tasks."""
         self.meta_loss[member] = float(loss)
+        if health is not None:
+            self.meta_health[member] = health
         self._throttled(lambda: f"[{self.name}] task {task + 1}/{self.num_tasks} meta-training step {int(step)}/"
-                                f"{int(steps)} bc loss {float(np.nanmean(self.meta_loss)):.3f}{self._behind()} | "
-                                f"elapsed {_clock(time.time() - self.start)} remaining {self._remaining_text()}")
+                                f"{int(steps)} bc loss {float(np.nanmean(self.meta_loss)):.3f}{self._health()}"
+                                f"{self._behind()} | elapsed {_clock(time.time() - self.start)} remaining "
+                                f"{self._remaining_text()}")
+
+    def _health(self) -> str:
+        if np.all(np.isnan(self.meta_health)):
+            return ""
+        l2, ev, adv, rho = np.nanmean(self.meta_health, axis=0)
+        return f" value l2 {l2:.3g} EV {ev:.2f} |A| {adv:.3g} rho {rho:.2f}"
 
     def record_compress(self, member: int, task: int, step: int, steps: int, kl: float):
         """After every iteration of a compress phase (``pnc``: distilling the active column into the knowledge
@@ -127,8 +139,10 @@ class Console:
             self.progress[name].record_iteration(event["member"], event["task"], event["iteration"],
                                                  event["success_rate"])
         elif kind == "meta_step" and name in self.progress:
+            health = (tuple(event[k] for k in ("value_l2", "value_ev", "adv_abs", "rho"))
+                      if "value_ev" in event else None)
             self.progress[name].record_meta_step(event["member"], event["task"], event["meta_step"],
-                                                 event["meta_steps"], event["bc_loss"])
+                                                 event["meta_steps"], event["bc_loss"], health)
         elif kind == "compress_iteration" and name in self.progress:
             self.progress[name].record_compress(event["member"], event["task"], event["compress_iteration"],
                                                 event["compress_iterations"], event["kl"])
@@ -157,9 +171,30 @@ def _tensorboard_writer_class():
 
 def _report_chunk(log, name, metrics, start, stop, num_tasks):
     its = np.asarray(metrics.task.iterations)[:, :stop - start]
+    meta = metrics.task.meta
     for t in range(stop - start):
         log(f"[{name}] task {start + t + 1}/{num_tasks} iterations-to-success per seed: {its[:, t].tolist()} "
             f"(mean {its[:, t].mean():.1f})")
+        if meta is not None:
+            log(f"[{name}] task {start + t + 1}/{num_tasks} meta phase: {meta_health_text(meta, t, start + t)}")
+
+
+def meta_health_text(meta, t: int, slot: int) -> str:
+    """One line on the meta phase after task position ``t`` of ``meta`` (``jcomps.meta.MetaMetrics`` with leading
+    [seeds, tasks]; ``slot``: that task's experience slot): the value heads' fit to their data's returns before
+    and after, the newest head's, and how much the old tasks still contribute."""
+    start = _at_task(meta.start, t)
+    end = _at_task(meta.end, t)
+    mean = lambda x: float(np.nanmean(x))  # noqa: E731 - over seeds and seen slots
+    return (f"heads' EV on returns {mean(start.value_ev):.2f} -> {mean(end.value_ev):.2f} (newest head "
+            f"{mean(start.value_ev[:, slot]):.2f} -> {mean(end.value_ev[:, slot]):.2f}), bias/std "
+            f"{mean(end.value_bias / end.return_std):+.2f}, mean rho {mean(end.rho):.2f} (oldest task "
+            f"{mean(end.rho[:, 0]):.2f}), |A| {mean(end.adv_abs):.3g}, bc loss {mean(end.bc_loss):.3f}")
+
+
+def _at_task(stats, t: int):
+    """The fields of a SlotStats [seeds, tasks, slots] at task position ``t``, as numpy [seeds, slots]."""
+    return type(stats)(*[np.asarray(x)[:, t] for x in stats])
 
 
 def _check_finite(log, name, seeds, nonfinite, start):

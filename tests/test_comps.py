@@ -1,5 +1,7 @@
 """Tests of the CoMPS and GMPS+PPO methods on tiny Point Goal settings."""
 
+import dataclasses
+
 import chex
 import jax
 import numpy as np
@@ -49,6 +51,56 @@ def test_metrics_have_the_shared_shape(run):
     _, _, _, _, (m1, m2) = run
     chex.assert_shape(m1.per_iteration.success_rate, (3,))
     assert 1 <= int(m1.iterations) <= 3
+
+
+def test_the_meta_phase_reports_its_health(run):
+    _, _, _, _, (m1, m2) = run
+    chex.assert_shape(m1.meta.steps.bc_loss, (SMALL_META.num_meta_steps * SMALL_META.num_outer_steps,))
+    for m, seen in ((m1, 1), (m2, 2)):
+        for stats in (m.meta.start, m.meta.end):
+            chex.assert_shape(stats.value_ev, (3,))
+            assert np.all(np.isfinite(np.asarray(stats.value_ev)[:seen]))
+            assert np.all(np.isnan(np.asarray(stats.value_ev)[seen:]))  # slots not learnt yet
+            assert np.all((np.asarray(stats.rho)[:seen] > 0) & (np.asarray(stats.rho)[:seen] <= 1))
+
+
+def test_a_new_tasks_head_starts_from_the_rl_steps_value_function_then_fits_its_returns():
+    family = envs.make("point_goal")
+    no_meta = dataclasses.replace(SMALL_META, num_meta_steps=0, value_fit_steps=0)
+    config = comps.CoMPSConfig(ppo=SMALL_PPO, meta=no_meta, max_tasks=3, num_skilled=3, num_offpolicy=5)
+    state0 = methods.make("comps", family, config).init(jax.random.PRNGKey(0))
+
+    def learn(**meta_fields):
+        cfg = dataclasses.replace(config, meta=dataclasses.replace(no_meta, **meta_fields))
+        return jax.jit(methods.make("comps", family, cfg).learn_task)(state0, envs.task_at(family, 0))
+
+    s1, m1 = learn()
+    # No fit, no meta steps: head 0 is the critic the RL step trained (kept in params.value), the others untouched.
+    chex.assert_trees_all_equal(meta.head_params(s1.meta.value, 0), s1.params.value)
+    chex.assert_trees_all_equal(meta.head_params(s1.meta.value, 1), meta.head_params(state0.meta.value, 1))
+    chex.assert_trees_all_equal(m1.meta.start, m1.meta.end)
+    s1r, _ = learn(value_init="random")
+    chex.assert_trees_all_equal(s1r.meta.value, state0.meta.value)
+    # The same RL step and stores, then a fit to D_0's returns (meta.fit_head, whose law is tested in
+    # test_meta): head 0 alone moves, and explains more of them.
+    s1f, m1f = learn(value_fit_steps=50)
+    chex.assert_trees_all_equal(s1f.stores, s1.stores)
+    assert float(m1f.meta.start.value_l2[0]) < float(m1.meta.start.value_l2[0])
+    assert float(m1f.meta.start.value_ev[0]) > float(m1.meta.start.value_ev[0])
+    chex.assert_trees_all_equal(meta.head_params(s1f.meta.value, 1), meta.head_params(state0.meta.value, 1))
+
+
+def test_the_meta_step_works_in_the_rl_steps_reward_units_and_learning_rate():
+    for family in ("cheetah_vel", "ant_goal", "point_goal"):
+        config = methods.default_config("comps", family)
+        assert config.meta.reward_scale is None and config.meta.value_learning_rate is None
+        resolved = comps.meta_config(config)
+        assert resolved.reward_scale == config.ppo.reward_scale
+        assert resolved.value_learning_rate == config.ppo.learning_rate
+    config = methods.default_config("comps", "ant_goal")
+    fixed = dataclasses.replace(config, meta=dataclasses.replace(config.meta, reward_scale=1.0,
+                                                                 value_learning_rate=1e-3))
+    assert comps.meta_config(fixed).reward_scale == 1.0 and comps.meta_config(fixed).value_learning_rate == 1e-3
 
 
 def test_gmps_ppo_is_registered_without_importance_weights():

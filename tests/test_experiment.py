@@ -59,10 +59,19 @@ def test_results_schema(full_run):
         # Samples-to-success: 2 episodes of Point Goal's 100 steps per iteration.
         assert m["env_steps_per_iteration"] == 200
         np.testing.assert_allclose(m["env_steps_to_success_mean"], np.asarray(m["iterations_to_success_mean"]) * 200)
+    # The meta step's health, for the method that has one: per seed and task, and per seen slot.
+    meta = results["methods"]["comps"]["meta"]
+    assert "meta" not in results["methods"]["ppo_tl"]
+    for key in ("value_ev_start", "value_ev_end", "newest_value_ev_start", "value_bias_over_return_std_end",
+                "value_l2_end", "adv_abs_end", "rho_end", "oldest_rho_end", "bc_loss_end"):
+        assert np.asarray(meta[key], dtype=float).shape == (2, 3), key
+    assert all(0 < r <= 1 for row in meta["rho_end"] for r in row)
+    assert [[len(slots) for slots in row] for row in meta["per_slot_value_ev_end"]] == [[1, 2, 3]] * 2
+    assert len(meta["value_ev_end_mean"]) == 3
     sig = results["significance"]["against"]["ppo_tl"]
     assert sig["bootstrap_samples"] == 30_000 and set(sig) >= {"p_ttest", "p_bootstrap", "t"}
     for plot in ("iterations_to_success", "samples_to_success", "lifelong_return", "per_task_return",
-                 "backward_transfer", "heldout_meta_test"):
+                 "backward_transfer", "heldout_meta_test", "meta_health"):
         assert (full_run / "plots" / f"{plot}.png").stat().st_size > 1000
     table = (full_run / "significance.md").read_text()
     assert table.startswith("Statistic") and "| comps vs |" in table and "Interquartile mean (IQM)" in table
@@ -246,6 +255,19 @@ def test_resume_fills_config_fields_added_since_the_run_was_made(runner, full_ru
     runner.main(["--out", str(old), "--resume"])
     assert "already finished" in capsys.readouterr().out
     assert json.loads(run_json.read_text()) == json.loads((full_run / "run.json").read_text())
+
+
+def test_resume_refuses_a_comps_run_made_before_per_task_value_networks(runner, full_run, tmp_path, capsys):
+    old = tmp_path / "old_heads"
+    shutil.copytree(full_run, old)
+    run_json = old / "run.json"
+    stored = json.loads(run_json.read_text())
+    del stored["methods"]["comps"]["meta"]["value_init"]  # as made before issue 27: its state no longer fits
+    run_json.write_text(json.dumps(stored))
+    with pytest.raises(SystemExit) as info:
+        runner.main(["--out", str(old), "--resume"])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and "value_init" in err and "start it anew" in err
 
 
 def test_significance_matches_the_t_test_and_detects_equal_groups():

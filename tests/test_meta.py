@@ -91,8 +91,9 @@ def test_meta_training_lowers_the_outer_bc_loss():
     hook = progress.host(lambda m: calls.append((int(m["task"]), int(m["meta_step"]), int(m["meta_steps"]),
                                                  float(m["bc_loss"]))))
     report = progress.with_fields(hook, task=jnp.int32(4))
-    new, losses = jax.jit(lambda s, r: meta.meta_train(CONFIG, s, stores, r, progress_fn=report))(
+    new, stats = jax.jit(lambda s, r: meta.meta_train(CONFIG, s, stores, r, progress_fn=report))(
         state, jax.random.PRNGKey(1))
+    losses = stats.bc_loss
     jax.effects_barrier()
     after = meta.meta_loss(CONFIG, new.policy, new.value, batches, stores.task_valid)
     assert float(after) < float(before) - 0.05, (before, after)
@@ -110,8 +111,9 @@ def _reference_gradients(config, policy, value, stores, rng):
     valid = jnp.asarray(stores.task_valid, jnp.float32)
 
     def total(p, v):
-        objective, (bc, _) = jax.vmap(lambda s, b: meta.slot_objective(config, p, v, s, b))(
+        objective, stats = jax.vmap(lambda s, b: meta.slot_objective(config, p, v, s, b))(
             jnp.arange(SLOTS), batches)
+        bc = stats.bc_loss
         return jnp.sum(objective * valid) / jnp.sum(valid), jnp.sum(bc * valid) / jnp.sum(valid)
 
     (_, bc), grads = jax.value_and_grad(total, argnums=(0, 1), has_aux=True)(policy, value)
@@ -127,8 +129,9 @@ def test_slot_loop_equals_all_slots_at_once(chunk, valid):
     stores.offpolicy.traj.obs[nan_slot] = np.nan
     policy, value = _params()
     config = dataclasses.replace(CONFIG, task_chunk=chunk)
-    loss, g_policy, g_value = jax.jit(lambda p, v: meta.meta_gradients(config, p, v, stores, jax.random.PRNGKey(5)))(
-        policy, value)
+    stats, g_policy, g_value = jax.jit(lambda p, v: meta.meta_gradients(config, p, v, stores,
+                                                                        jax.random.PRNGKey(5)))(policy, value)
+    loss = stats.bc_loss
     clean = stores._replace(skilled=stores.skilled._replace(obs=np.nan_to_num(stores.skilled.obs)))
     clean = clean._replace(offpolicy=clean.offpolicy._replace(
         traj=clean.offpolicy.traj._replace(obs=np.nan_to_num(clean.offpolicy.traj.obs))))
@@ -146,8 +149,8 @@ def test_bc_and_value_losses_do_not_cross():
     stores = _stores(5)
     policy, value = _params()
     batch = jax.tree.map(lambda x: x[0], meta.sample_batches(CONFIG, stores, jax.random.PRNGKey(0)))
-    bc_grad_value = jax.grad(lambda v: meta.slot_objective(CONFIG, policy, v, 0, batch)[1][0])(value)
-    l2_grad_policy = jax.grad(lambda p: meta.slot_objective(CONFIG, p, value, 0, batch)[1][1])(policy)
+    bc_grad_value = jax.grad(lambda v: meta.slot_objective(CONFIG, policy, v, 0, batch)[1].bc_loss)(value)
+    l2_grad_policy = jax.grad(lambda p: meta.slot_objective(CONFIG, p, value, 0, batch)[1].value_l2)(policy)
     for leaf in jax.tree.leaves((bc_grad_value, l2_grad_policy)):
         assert float(jnp.max(jnp.abs(leaf))) == 0.0
 
@@ -184,7 +187,8 @@ def test_sequential_outer_update_follows_algorithm_1():
     state = _meta_state(policy, value, config)
     calls = []
     hook = progress.host(lambda m: calls.append((int(m["meta_step"]), int(m["meta_steps"]))))
-    new, losses = jax.jit(lambda s: meta.meta_train(config, s, stores, jax.random.PRNGKey(4), progress_fn=hook))(state)
+    new, stats = jax.jit(lambda s: meta.meta_train(config, s, stores, jax.random.PRNGKey(4), progress_fn=hook))(state)
+    losses = stats.bc_loss
     jax.effects_barrier()
     p_opt, v_opt = meta.optimizers(config)
     keys = jax.random.split(jax.random.PRNGKey(4), 4).reshape(2, 2, -1)
@@ -193,7 +197,8 @@ def test_sequential_outer_update_follows_algorithm_1():
     for n in range(2):
         for j in range(2):
             for k in range(2):
-                loss, g, vg = grad(ref.policy, ref.value, keys[n, k], j)
+                stats_j, g, vg = grad(ref.policy, ref.value, keys[n, k], j)
+                loss = stats_j.bc_loss
                 up, popt = p_opt.update(g, ref.policy_opt, ref.policy)
                 vup, vopt = v_opt.update(vg, ref.value_opt, ref.value)
                 ref = meta.MetaState(optax.apply_updates(ref.policy, up), optax.apply_updates(ref.value, vup), popt,
@@ -230,8 +235,8 @@ def test_standardised_inner_advantages(vtrace_baseline):
     mask = off.traj.valid * off.mask[None, :]
     for importance_sampling in (False, True):
         base = dataclasses.replace(CONFIG, vtrace_baseline=vtrace_baseline, importance_sampling=importance_sampling)
-        raw, targets = meta._vtrace_terms(base, log_prob, values, bootstrap, off)
-        normed, targets_n = meta._vtrace_terms(dataclasses.replace(base, normalize_advantages=True), log_prob,
+        raw, targets, _ = meta._vtrace_terms(base, log_prob, values, bootstrap, off)
+        normed, targets_n, _ = meta._vtrace_terms(dataclasses.replace(base, normalize_advantages=True), log_prob,
                                                values, bootstrap, off)
         np.testing.assert_allclose(targets, targets_n)
         weights = (jnp.minimum(jnp.exp(log_prob - off.traj.log_prob), base.pg_rho_bar) if importance_sampling
@@ -248,14 +253,144 @@ def test_standardised_inner_advantages(vtrace_baseline):
     if not vtrace_baseline:
         config = dataclasses.replace(CONFIG, vtrace_baseline=False, importance_sampling=False,
                                      normalize_advantages=True)
-        a, _ = meta._vtrace_terms(config, log_prob, values, bootstrap, off)
+        a, _, _ = meta._vtrace_terms(config, log_prob, values, bootstrap, off)
         scaled = off._replace(traj=off.traj._replace(reward=7.0 * off.traj.reward))
-        b, _ = meta._vtrace_terms(config, log_prob, values, bootstrap, scaled)
+        b, _, _ = meta._vtrace_terms(config, log_prob, values, bootstrap, scaled)
         np.testing.assert_allclose(np.asarray(a * mask), np.asarray(b * mask), rtol=1e-4, atol=1e-5)
 
 
-def test_the_unweighted_rungs_standardise_and_the_weighted_do_not():
+def _flat(config, prefix=""):
+    out = {}
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        if dataclasses.is_dataclass(value):
+            out.update(_flat(value, f"{prefix}{f.name}."))
+        else:
+            out[prefix + f.name] = value
+    return out
+
+
+@pytest.mark.parametrize("family", ["point_goal", "cheetah_vel", "ant_goal", "ant_dir", "metaworld"])
+def test_every_rung_of_the_ladder_adds_exactly_one_feature(family):
     from jcomps import methods
 
-    for name, expected in [("gmps", True), ("gmps_ppo", True), ("gmps_ppo_is", False), ("comps", False)]:
-        assert methods.default_config(name, "ant_goal").meta.normalize_advantages is expected, name
+    named = [feature for _, _, feature in methods.LADDER]
+    assert sorted(named) == sorted(methods.LADDER_FEATURES)  # every feature is a rung of its own
+    for lower, upper, feature in methods.LADDER:
+        a, b = _flat(methods.default_config(lower, family)), _flat(methods.default_config(upper, family))
+        assert a.keys() == b.keys()
+        differ = {k for k in a if a[k] != b[k]}
+        assert differ, (lower, upper)
+        assert differ <= set(methods.LADDER_FEATURES[feature]), (lower, upper, differ)
+    # The standardisation of the inner advantages is the same on every rung.
+    values = {methods.default_config(m, family).meta.normalize_advantages
+              for m in ("gmps", "gmps_ppo", "gmps_ppo_is", "gmps_ppo_is_x2", "comps")}
+    assert values == {methods.STANDARDISED_INNER_ADVANTAGES}
+
+
+def _constant_reward_stores(reward, policy, seed=11):
+    """Stores whose every step pays ``reward``, never terminating, collected by ``policy`` itself (ρ = 1)."""
+    stores = _stores(seed)
+    traj = stores.offpolicy.traj
+    log_prob = jax.vmap(lambda o, a: networks.policy_log_prob(policy, o, a))(traj.obs, traj.action)
+    traj = traj._replace(reward=np.full_like(traj.reward, reward), log_prob=np.asarray(log_prob))
+    return stores._replace(offpolicy=stores.offpolicy._replace(traj=traj))
+
+
+@pytest.mark.parametrize("importance_sampling", [False, True])
+def test_a_head_learns_the_value_of_a_constant_reward_in_the_rl_steps_units(importance_sampling):
+    # Law: with reward r at every step, reward scale c and discount γ, V = c·r/(1 − γ) everywhere (the bootstrap
+    # at the time limit included). From its random initialisation the head gets there within the configured
+    # meta steps, in the RL step's units (c), whatever the inner step's weighting.
+    policy, value = _params()
+    stores = _constant_reward_stores(10.0, policy)
+    config = dataclasses.replace(CONFIG, discount=0.5, reward_scale=0.1, value_learning_rate=0.03,
+                                 num_meta_steps=25, num_outer_steps=5, importance_sampling=importance_sampling,
+                                 vtrace_baseline=importance_sampling, outer_learning_rate=1e-4)
+    new, stats = jax.jit(lambda s: meta.meta_train(config, s, stores, jax.random.PRNGKey(0)))(
+        _meta_state(policy, value, config))
+    target = 0.1 * 10.0 / (1 - 0.5)
+    for slot in (0, 1):  # the seen slots
+        v = meta._head(new.value, networks.normalize_obs(new.policy, stores.offpolicy.traj.obs[slot]), slot)
+        assert abs(float(jnp.mean(v)) - target) < 0.03 * target, (slot, v)  # from ~0 at initialisation
+        np.testing.assert_allclose(np.asarray(v), target, rtol=0.1)
+    assert float(stats.value_l2[-1]) < 1e-3 * target ** 2 < float(stats.value_l2[0])
+
+
+def test_a_fitted_head_is_not_moved_by_the_first_update():
+    # A head that already predicts c·r/(1 − γ) has zero TD errors, so its l2 gradient is exactly zero and Adam
+    # leaves it where it is, while the policy moves.
+    policy, value = _params()
+    stores = _constant_reward_stores(10.0, policy)
+    fitted = jax.tree.map(lambda x: x.at[0].set(0.0), value)  # head 0: zero weights ...
+    fitted[-1]["b"] = fitted[-1]["b"].at[0].set(2.0)            # ... and V ≡ 0.1·10/(1 − 0.5) = 2
+    config = dataclasses.replace(CONFIG, discount=0.5, reward_scale=0.1, num_meta_steps=1, num_outer_steps=1)
+    new, _ = jax.jit(lambda s: meta.meta_train(config, s, stores, jax.random.PRNGKey(0)))(
+        _meta_state(policy, fitted, config))
+    chex.assert_trees_all_equal(meta.head_params(new.value, 0), meta.head_params(fitted, 0))
+    assert float(jnp.max(jnp.abs(meta.head_params(new.value, 1)[0]["w"] - meta.head_params(fitted, 1)[0]["w"]))) > 0
+    assert float(jnp.max(jnp.abs(new.policy["mean"][0]["w"] - policy["mean"][0]["w"]))) > 0
+
+
+def test_slot_diagnostics_measure_the_heads_fit_and_the_weights():
+    policy, value = _params()
+    stores = _constant_reward_stores(10.0, policy)._replace(task_valid=np.array([True, False, False]))
+    # Rewards that vary along the trajectory, so that the returns have a spread to explain.
+    traj = stores.offpolicy.traj
+    stores = stores._replace(offpolicy=stores.offpolicy._replace(
+        traj=traj._replace(reward=np.cumsum(np.ones_like(traj.reward), axis=1))))
+    config = dataclasses.replace(CONFIG, reward_scale=0.5)
+    stats = jax.jit(lambda p, v: meta.slot_diagnostics(config, p, v, stores))(policy, value)
+    chex.assert_shape(stats.value_ev, (SLOTS,))
+    assert np.all(np.isnan(np.asarray(stats.value_ev)[1:]))  # unseen slots
+    # On the behaviour policy's own data every clipped weight is 1.
+    np.testing.assert_allclose(float(stats.rho[0]), 1.0, rtol=1e-5)
+    # A head that predicts the returns exactly: explained variance 1 and no bias. Its returns, by hand:
+    off = jax.tree.map(lambda x: x[0], stores.offpolicy)
+    v = meta._head(value, networks.normalize_obs(policy, off.traj.obs), 0)
+    boot = meta._head(value, networks.normalize_obs(policy, off.traj.last_obs), 0)
+    returns = np.zeros_like(np.asarray(v))
+    acc = np.asarray(boot)
+    for t in reversed(range(T)):
+        acc = 0.5 * np.asarray(off.traj.reward[t]) + config.discount * acc
+        returns[t] = acc
+    ev = 1 - np.var(returns - np.asarray(v)) / np.var(returns)
+    np.testing.assert_allclose(float(stats.value_ev[0]), ev, rtol=1e-4)
+    np.testing.assert_allclose(float(stats.value_bias[0]), np.mean(np.asarray(v) - returns), rtol=1e-4)
+    np.testing.assert_allclose(float(stats.return_std[0]), np.std(returns), rtol=1e-4)
+
+
+def test_the_reset_reading_starts_each_meta_phase_with_fresh_adam_states():
+    stores = _stores(12)
+    policy, value = _params()
+    config = dataclasses.replace(CONFIG, num_meta_steps=2)
+    used = jax.jit(lambda s: meta.meta_train(config, s, stores, jax.random.PRNGKey(1)))(
+        _meta_state(policy, value, config))[0]  # Adam moments no longer zero
+    carry = jax.jit(lambda s: meta.meta_train(config, s, stores, jax.random.PRNGKey(2)))(used)[0]
+    reset_config = dataclasses.replace(config, optimizer_state="reset")
+    reset = jax.jit(lambda s: meta.meta_train(reset_config, s, stores, jax.random.PRNGKey(2)))(used)[0]
+    fresh = jax.jit(lambda s: meta.meta_train(config, s, stores, jax.random.PRNGKey(2)))(
+        _meta_state(used.policy, used.value, config))[0]
+    chex.assert_trees_all_close(reset, fresh, rtol=1e-6)
+    assert float(jnp.max(jnp.abs(carry.policy["mean"][0]["w"] - reset.policy["mean"][0]["w"]))) > 1e-6
+
+
+def test_fitting_a_new_head_recovers_the_returns_of_its_data():
+    # Law: with γ = 0 the return of a step is its (scaled) reward; rewards that are a smooth function of the
+    # observation are recovered by the fit (explained variance near 1, no bias), the other heads untouched.
+    policy, value = _params()
+    stores = _stores(13)
+    traj = stores.offpolicy.traj
+    stores = stores._replace(offpolicy=stores.offpolicy._replace(traj=traj._replace(reward=2.0 * traj.obs[..., 0])))
+    config = dataclasses.replace(CONFIG, discount=1e-6, reward_scale=0.5, value_fit_steps=300,
+                                 value_fit_learning_rate=1e-2)
+    off = jax.tree.map(lambda x: x[1], stores.offpolicy)
+    fitted = jax.jit(lambda v: meta.fit_head(config, policy, v, 1, off))(value)
+    stats = jax.jit(lambda v: meta.slot_diagnostics(config, policy, v, stores))(fitted)
+    before = jax.jit(lambda v: meta.slot_diagnostics(config, policy, v, stores))(value)
+    assert float(stats.value_ev[1]) > 0.95 and float(before.value_ev[1]) < 0.5
+    assert abs(float(stats.value_bias[1])) < 0.05 * float(stats.return_std[1])
+    for slot in (0, 2):
+        chex.assert_trees_all_equal(meta.head_params(fitted, slot), meta.head_params(value, slot))
+    no_fit = dataclasses.replace(config, value_fit_steps=0)
+    chex.assert_trees_all_equal(meta.fit_head(no_fit, policy, value, 1, off), value)

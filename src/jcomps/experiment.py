@@ -111,6 +111,15 @@ def _differences(a, b, prefix="") -> list[str]:
     return [] if a == b else [f"{prefix[:-1]}: run has {a!r}, asked {b!r}"]
 
 
+# Config fields whose addition changed what a method's state holds, so that a run made before them cannot be
+# resumed by this version whatever the options (its checkpoints no longer fit): field path within a method's
+# config -> why.
+UNRESUMABLE_BEFORE = {
+    "meta.value_init": "CoMPS's meta step now keeps one value network per task and starts a new task's from the RL "
+                       "step's critic (issue 27)",
+}
+
+
 def _fill_added_fields(stored: dict, asked: dict, default: dict, prefix: str) -> list[str]:
     """Config fields that a stored run lacks because jcomps added them after the run was made: where the asked
     value is the field's default (the behaviour the run had, as every added field keeps the old behaviour by
@@ -121,6 +130,10 @@ def _fill_added_fields(stored: dict, asked: dict, default: dict, prefix: str) ->
         if not isinstance(default, dict) or key not in default:
             continue
         if key not in stored:
+            path = prefix.split(".", 2)[-1] + key if prefix.startswith("methods.") else prefix + key
+            if path in UNRESUMABLE_BEFORE:
+                raise RunError(f"--resume: this run was made before {prefix}{key} existed and cannot be resumed by "
+                               f"this version ({UNRESUMABLE_BEFORE[path]}); start it anew with another --out")
             if value == default[key]:
                 stored[key] = value
                 filled.append(prefix + key)
@@ -311,7 +324,7 @@ ProgressReceiver = Callable[[dict], None]
 - ``warning``: something was set aside (``message``), e.g. an unreadable checkpoint;
 - ``iteration`` / ``meta_step``: a member's progress inside a chunk (``program``, ``member``, ``task`` and the
   ``jcomps.progress`` metrics: ``iteration``, ``success_rate``, ``mean_return`` / ``meta_step``,
-  ``meta_steps``, ``bc_loss``);
+  ``meta_steps``, ``bc_loss``, ``value_l2``, ``value_ev``, ``adv_abs``, ``rho``);
 - ``compress_iteration``: the same for a compress phase of ``pnc`` (``compress_iteration``, ``compress_iterations``,
   ``kl``);
 - ``chunk``: a chunk of tasks is done, per results entry (``program``, ``entry``, ``start``, ``stop``,

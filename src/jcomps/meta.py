@@ -6,7 +6,9 @@ For every seen task j (a slot of ``buffers.SequenceStores`` with ``task_valid``)
   clipped importance weights ρ_i and V-trace advantages Â from value head j (both constants: no gradient);
 - outer: L_BC(φ_j) = −mean log π_{φ_j}(a|s) on a minibatch of D*_j;
 - θ ← Adam(θ, ∇_θ mean_j L_BC(φ_j)), the gradient flowing *through* the inner step (second order) unless
-  ``first_order``. The value heads learn V-trace targets by l2 at every outer step.
+  ``first_order``. The value heads (one value MLP per task slot) learn V-trace targets by l2 at every outer step,
+  in the RL step's reward units (``reward_scale``); a new task's head starts from the RL step's trained value
+  function (``value_init``).
 
 Masked slots (tasks not seen yet) contribute nothing, so one compiled step serves every prefix of a sequence.
 """
@@ -41,8 +43,9 @@ class MetaConfig:
     """m, trajectories of D_j per inner step."""
     skilled_trajectories: int = 10
     """Trajectories of D*_j per outer minibatch."""
-    value_learning_rate: float = 1e-3
-    """Adam learning rate of the per-task value heads."""
+    value_learning_rate: Optional[float] = None
+    """Adam learning rate of the per-task value heads in the meta step; None: the RL step's learning rate (the rate
+    its critic, which a new head copies, was trained at; CoMPS resolves it), 1e-3 where there is no RL step."""
     discount: float = 0.99
     """γ of the V-trace targets."""
     rho_bar: float = 1.0
@@ -62,30 +65,54 @@ class MetaConfig:
     importance weights, as GMPS's code does (``center_adv``); off: the raw advantages (docs/design.md)."""
     task_chunk: int = 0
     """Task slots computed in parallel per loop iteration of the meta step; 0: 1 on CPU, 8 on accelerators."""
+    reward_scale: Optional[float] = None
+    """Rewards are multiplied by this in the V-trace targets and inner advantages; None: the RL step's
+    ``reward_scale`` (the units its value function learnt; CoMPS resolves it), 1.0 where there is no RL step."""
+    value_init: str = "rl_step"
+    """How a new task's value head starts: ``rl_step``, a copy of the RL step's trained value function (fitted to
+    the very data D_i holds); ``random``, its random initialisation (before issue 27)."""
+    value_fit_steps: int = 200
+    """Full-batch Adam steps (``value_fit_learning_rate``, a fresh Adam state) that fit a new task's head to the
+    discounted returns of D_i before its first meta step (on-policy V-trace targets: the behaviour policy's own
+    returns, bootstrapped by the head at the time limit); 0: none (before issue 27)."""
+    value_fit_learning_rate: float = 1e-3
+    """Adam learning rate of that fit."""
+    optimizer_state: str = "carry"
+    """The meta step's Adam states (policy and value heads) at the start of a meta phase: ``carry``, as the last
+    meta phase left them; ``reset``, fresh for every meta phase (docs/design.md)."""
     outer_update: str = "mean"
     """How θ is updated: ``mean``, one Adam step on the mean over seen tasks per outer step; ``sequential``,
     Algorithm 1 read literally: per meta step, task after task (newest last), ``num_outer_steps`` Adam steps on
     that task alone. Both make the same number of per-task gradient evaluations (docs/design.md)."""
 
     TRACED: ClassVar[frozenset] = frozenset({
-        "outer_learning_rate", "inner_learning_rate", "value_learning_rate", "discount", "rho_bar", "c_bar",
-        "pg_rho_bar"})
+        "outer_learning_rate", "inner_learning_rate", "value_learning_rate", "value_fit_learning_rate", "discount",
+        "rho_bar", "c_bar", "pg_rho_bar", "reward_scale"})
     """Fields that may hold traced scalars (a hyperparameter-grid axis inside one compiled program)."""
 
     def __post_init__(self):
-        for name in ("outer_learning_rate", "inner_learning_rate", "value_learning_rate", "rho_bar", "c_bar",
+        for name in ("outer_learning_rate", "inner_learning_rate", "value_fit_learning_rate", "rho_bar", "c_bar",
                      "pg_rho_bar"):
             check_field(getattr(self, name) > 0, name, getattr(self, name), "a number > 0")
-        for name in ("num_meta_steps", "num_outer_steps"):
+        check_field(self.value_learning_rate is None or self.value_learning_rate > 0, "value_learning_rate",
+                    self.value_learning_rate, "None (the RL step's) or a number > 0")
+        for name in ("num_meta_steps", "num_outer_steps", "value_fit_steps"):
             check_field(getattr(self, name) >= 0, name, getattr(self, name), "an integer >= 0")
         check_field(self.task_chunk >= 0, "task_chunk", self.task_chunk, "an integer >= 0 (0: by backend)")
         for name in ("inner_trajectories", "skilled_trajectories"):
             check_field(getattr(self, name) >= 1, name, getattr(self, name), "an integer >= 1")
         check_field(0 < self.discount <= 1, "discount", self.discount, "a number in (0, 1]")
         check_field(self.outer_update in OUTER_UPDATES, "outer_update", self.outer_update, ", ".join(OUTER_UPDATES))
+        check_field(self.reward_scale is None or self.reward_scale > 0, "reward_scale", self.reward_scale,
+                    "None (the RL step's) or a number > 0")
+        check_field(self.value_init in VALUE_INITS, "value_init", self.value_init, ", ".join(VALUE_INITS))
+        check_field(self.optimizer_state in OPTIMIZER_STATES, "optimizer_state", self.optimizer_state,
+                    ", ".join(OPTIMIZER_STATES))
 
 
 OUTER_UPDATES = ("mean", "sequential")
+VALUE_INITS = ("rl_step", "random")
+OPTIMIZER_STATES = ("carry", "reset")
 
 # The paper's per-family meta-step settings (its table of inner learning rates: 0.005 on the MuJoCo families,
 # 0.0025 on MetaWorld), put over ``MetaConfig``'s defaults by ``jcomps.methods.default_config``.
@@ -101,45 +128,91 @@ class TaskBatch(NamedTuple):
     skilled_valid: jax.Array
 
 
+class SlotStats(NamedTuple):
+    """The health of the meta step on one task slot (or a mean over the seen slots); every field f32.
+
+    Attributes:
+      bc_loss: L_BC(φ_j), the imitation loss of the adapted policy on D*_j.
+      value_l2: mean (V_j − v_s)² against the V-trace targets v_s (the heads' loss).
+      value_ev: explained variance of V_j against the discounted returns G of D_j's data, 1 − Var(G − V)/Var(G):
+        the fit to V-trace targets alone can look perfect while the targets follow a wrong head.
+      value_ev_targets: explained variance of V_j against the V-trace targets.
+      value_bias: mean (V_j − G).
+      return_std: standard deviation of G (the spread to judge ``value_bias`` against).
+      adv_abs: mean |Â| of the inner step's advantages (importance weights included).
+      rho: mean clipped importance weight of the inner step, min(ρ̄_pg, π_θ/μ): how much the old task still
+        contributes (1 without importance sampling).
+    """
+
+    bc_loss: jax.Array
+    value_l2: jax.Array
+    value_ev: jax.Array
+    value_ev_targets: jax.Array
+    value_bias: jax.Array
+    return_std: jax.Array
+    adv_abs: jax.Array
+    rho: jax.Array
+
+
 def init_value_heads(rng, obs_size: int, hidden_sizes, num_slots: int) -> list:
-    """A value MLP with one output per task slot."""
-    return networks.mlp_init(rng, (obs_size, *hidden_sizes, num_slots))
+    """One value MLP (``hidden_sizes``, one output, as the RL step's value function) per task slot, stacked on a
+    leading [num_slots] axis. Initialised one slot at a time (``lax.map``): a batched QR in the orthogonal
+    initialiser can deadlock XLA:CPU's pool on several host devices (``continual.init_seeds``)."""
+    return jax.lax.map(lambda k: networks.mlp_init(k, (obs_size, *hidden_sizes, 1)), jax.random.split(rng, num_slots))
+
+
+def head_params(value, slot) -> list:
+    """Head ``slot``'s MLP layers out of the stacked heads."""
+    return jax.tree.map(lambda x: jax.lax.dynamic_index_in_dim(x, slot, keepdims=False), value)
+
+
+def set_head(value, slot, layers) -> list:
+    """The stacked heads with head ``slot`` replaced by ``layers`` (an MLP of the same shapes, e.g. the RL step's
+    value function)."""
+    return jax.tree.map(lambda x, y: jax.lax.dynamic_update_index_in_dim(x, y.astype(x.dtype), slot, 0), value,
+                        layers)
 
 
 def _head(value, obs, slot):
-    """V_slot(obs): the shared torso, then only column ``slot`` of the last layer."""
-    h = networks.mlp_features(value[:-1], obs)
-    return h @ value[-1]["w"][:, slot] + value[-1]["b"][slot]
+    """V_slot(obs)."""
+    return networks.value_apply(head_params(value, slot), obs)
+
+
+def _reward_scale(config: MetaConfig):
+    return 1.0 if config.reward_scale is None else config.reward_scale
 
 
 def _vtrace_terms(config: MetaConfig, log_prob, values, bootstrap, off: buffers.OffPolicyStore):
-    """(inner advantages f32[T, m] including clipped ρ, value targets f32[T, m]); constants (no gradient).
+    """(inner advantages f32[T, m] including clipped ρ, value targets f32[T, m], clipped ρ of the inner step
+    f32[T, m]); constants (no gradient). Rewards are scaled by ``reward_scale``.
 
     With ``normalize_advantages`` the advantages are standardised over the task's valid samples before the
     importance weights multiply them (GMPS's ``center_adv``).
     """
     traj = off.traj
+    reward = traj.reward * _reward_scale(config)
     discounts = config.discount * (1.0 - traj.done)
     log_rhos = log_prob - traj.log_prob if config.importance_sampling else jnp.zeros_like(traj.log_prob)
     values, bootstrap, log_rhos = jax.lax.stop_gradient((values, bootstrap, log_rhos))
     if config.vtrace_baseline:
-        out = vtrace.vtrace(values, bootstrap, traj.reward, discounts, log_rhos, rho_bar=config.rho_bar,
+        out = vtrace.vtrace(values, bootstrap, reward, discounts, log_rhos, rho_bar=config.rho_bar,
                             c_bar=config.c_bar, pg_rho_bar=config.pg_rho_bar)
-        if not config.normalize_advantages:
-            return out.pg_advantages, out.vs
         weights, targets = out.clipped_pg_rhos, out.vs
-        raw = traj.reward + discounts * jnp.concatenate([out.vs[1:], bootstrap[None]], axis=0) - values
+        if not config.normalize_advantages:
+            return out.pg_advantages, out.vs, weights
+        raw = reward + discounts * jnp.concatenate([out.vs[1:], bootstrap[None]], axis=0) - values
     else:
         # No V-trace: the advantage is the bootstrapped discounted return minus V; importance weights (if on)
         # still weight the step.
-        targets = vtrace.discounted_returns(traj.reward, discounts, bootstrap)
-        weights = jnp.minimum(jnp.exp(log_rhos), config.pg_rho_bar) if config.importance_sampling else 1.0
+        targets = vtrace.discounted_returns(reward, discounts, bootstrap)
+        weights = (jnp.minimum(jnp.exp(log_rhos), config.pg_rho_bar) if config.importance_sampling
+                   else jnp.ones_like(log_rhos))
         raw = targets - values
     if config.normalize_advantages:
         mask = traj.valid * off.mask[None, :]
         mean = masked_mean(raw, mask)
         raw = (raw - mean) / (jnp.sqrt(masked_mean(jnp.square(raw - mean), mask)) + 1e-8)
-    return weights * raw, targets
+    return weights * raw, targets, weights
 
 
 def adapt(config: MetaConfig, policy, off: buffers.OffPolicyStore, advantages, log_prob_vjp):
@@ -160,8 +233,67 @@ def bc_loss(policy, obs, action, valid):
     return -masked_mean(networks.policy_log_prob(policy, obs, action), valid)
 
 
+def fit_head(config: MetaConfig, policy, value, slot, off: buffers.OffPolicyStore):
+    """The stacked heads with head ``slot`` fitted by ``value_fit_steps`` full-batch Adam steps (a fresh Adam
+    state, ``value_fit_learning_rate``) to the discounted returns of ``off`` (one task's D, collected by the behaviour
+    policy, so V-trace's targets with ρ = 1: the returns), bootstrapped by the head at the time limit and
+    recomputed at every step; observations normalised by ``policy``'s statistics, as in the meta step."""
+    if config.value_fit_steps == 0:
+        return value
+    traj = off.traj
+    mask = traj.valid * off.mask[None, :]
+    obs, last_obs = networks.normalize_obs(policy, traj.obs), networks.normalize_obs(policy, traj.last_obs)
+    reward = traj.reward * _reward_scale(config)
+    discounts = config.discount * (1.0 - traj.done)
+    optimizer = optax.adam(config.value_fit_learning_rate)
+
+    def loss(head):
+        bootstrap = jax.lax.stop_gradient(networks.value_apply(head, last_obs))
+        returns = vtrace.discounted_returns(reward, discounts, bootstrap)
+        return masked_mean(jnp.square(networks.value_apply(head, obs) - returns), mask)
+
+    def step(_, carry):
+        head, opt = carry
+        g = jax.grad(loss)(head)
+        up, new_opt = optimizer.update(g, opt, head)
+        return keep_if_finite(all_finite(g), (optax.apply_updates(head, up), new_opt), (head, opt))
+
+    head = head_params(value, slot)
+    head, _ = jax.lax.fori_loop(0, config.value_fit_steps, step, (head, optimizer.init(head)))
+    return set_head(value, slot, head)
+
+
+def _explained_variance(target, prediction, mask):
+    mean = masked_mean(target, mask)
+    var = masked_mean(jnp.square(target - mean), mask)
+    err = target - prediction
+    err_var = masked_mean(jnp.square(err - masked_mean(err, mask)), mask)
+    return 1.0 - err_var / jnp.maximum(var, 1e-8)
+
+
+def _stats(config: MetaConfig, bc, value_l2, values, bootstrap, targets, advantages, weights,
+           off: buffers.OffPolicyStore):
+    """SlotStats of one slot's batch (``bc`` and ``value_l2`` as given, the rest constants)."""
+    values, bootstrap, targets, advantages, weights = jax.lax.stop_gradient(
+        (values, bootstrap, targets, advantages, weights))
+    traj = off.traj
+    mask = traj.valid * off.mask[None, :]
+    returns = vtrace.discounted_returns(traj.reward * _reward_scale(config), config.discount * (1.0 - traj.done),
+                                        bootstrap)
+    r_mean = masked_mean(returns, mask)
+    return SlotStats(
+        bc_loss=bc,
+        value_l2=value_l2,
+        value_ev=_explained_variance(returns, values, mask),
+        value_ev_targets=_explained_variance(targets, values, mask),
+        value_bias=masked_mean(values - returns, mask),
+        return_std=jnp.sqrt(masked_mean(jnp.square(returns - r_mean), mask)),
+        adv_abs=masked_mean(jnp.abs(advantages), mask),
+        rho=masked_mean(weights, mask))
+
+
 def slot_objective(config: MetaConfig, policy, value, slot, batch: TaskBatch):
-    """L_BC(φ_slot) + the value head's l2, and (L_BC, value l2) as aux, for one task slot.
+    """L_BC(φ_slot) + the value head's l2, and SlotStats as aux, for one task slot.
 
     Its gradient in ``policy`` is the task's meta-gradient (through the inner step unless ``first_order``); in
     ``value`` it is the l2 gradient of head ``slot`` (V-trace targets and advantages are constants), so one
@@ -173,16 +305,16 @@ def slot_objective(config: MetaConfig, policy, value, slot, batch: TaskBatch):
     values = _head(value, networks.normalize_obs(policy, off.traj.obs), slot)
     bootstrap = _head(value, networks.normalize_obs(policy, off.traj.last_obs), slot)
     log_prob, log_prob_vjp = jax.vjp(lambda p: networks.policy_log_prob(p, off.traj.obs, off.traj.action), policy)
-    advantages, targets = _vtrace_terms(config, log_prob, values, bootstrap, off)
+    advantages, targets, weights = _vtrace_terms(config, log_prob, values, bootstrap, off)
     adapted = adapt(config, policy, off, advantages, log_prob_vjp)
     bc = bc_loss(adapted, batch.skilled_obs, batch.skilled_action, batch.skilled_valid)
     value_l2 = masked_mean(jnp.square(values - targets), off.traj.valid * off.mask[None, :])
-    return bc + value_l2, (bc, value_l2)
+    return bc + value_l2, _stats(config, bc, value_l2, values, bootstrap, targets, advantages, weights, off)
 
 
 def task_loss(config: MetaConfig, policy, value, slot, batch: TaskBatch):
     """L_BC(φ_j) for one task, with φ_j adapted from ``policy`` on the task's off-policy batch."""
-    return slot_objective(config, policy, value, slot, batch)[1][0]
+    return slot_objective(config, policy, value, slot, batch)[1].bc_loss
 
 
 def _zero_unseen(batches, task_valid):
@@ -246,7 +378,8 @@ def _seen(task_valid):
 
 
 def meta_gradients(config: MetaConfig, policy, value, stores: buffers.SequenceStores, rng):
-    """(mean L_BC, ∇_policy, ∇_value) over the valid slots, sampling each slot's batches.
+    """(SlotStats averaged over the valid slots, ∇_policy, ∇_value), sampling each slot's batches; the stats'
+    ``bc_loss`` is the meta loss.
 
     Equal to ``jax.value_and_grad(meta_loss)`` (and the value-head l2 gradient) on ``sample_batches(config,
     stores, rng)``, but computed by a loop over chunks of ``task_chunk`` slots that stops after the last valid
@@ -265,14 +398,15 @@ def meta_gradients(config: MetaConfig, policy, value, stores: buffers.SequenceSt
         ok = (slots < num_slots) & task_valid[jnp.minimum(slots, num_slots - 1)]
         slots = jnp.minimum(slots, num_slots - 1)
         batch = _zero_unseen(_slot_batches(config, stores, rng, slots), ok)
-        grads, (bc, _) = grad_fn(config, policy, value, slots, batch)
-        kept = _zero_unseen((bc, grads), ok)
+        grads, stats = grad_fn(config, policy, value, slots, batch)
+        kept = _zero_unseen((stats, grads), ok)
         return jax.tree.map(lambda a, x: a + jnp.sum(x, axis=0), acc, kept)
 
-    zeros = jax.tree.map(jnp.zeros_like, (jnp.zeros((), jnp.float32), (policy, value)))
-    loss, (g_policy, g_value) = jax.lax.fori_loop(0, (end + chunk - 1) // chunk, body, zeros)
+    zero = jnp.zeros((), jnp.float32)
+    zeros = (SlotStats(*[zero] * len(SlotStats._fields)), jax.tree.map(jnp.zeros_like, (policy, value)))
+    stats, (g_policy, g_value) = jax.lax.fori_loop(0, (end + chunk - 1) // chunk, body, zeros)
     scale = lambda tree: jax.tree.map(lambda x: x / count, tree)  # noqa: E731
-    return loss / count, scale(g_policy), scale(g_value)
+    return scale(stats), scale(g_policy), scale(g_value)
 
 
 class MetaState(NamedTuple):
@@ -286,32 +420,37 @@ class MetaState(NamedTuple):
 
 def optimizers(config: MetaConfig):
     """(outer policy optimiser, value optimiser)."""
-    return optax.adam(config.outer_learning_rate), optax.adam(config.value_learning_rate)
+    value_lr = 1e-3 if config.value_learning_rate is None else config.value_learning_rate
+    return optax.adam(config.outer_learning_rate), optax.adam(value_lr)
 
 
 def slot_gradients(config: MetaConfig, policy, value, stores: buffers.SequenceStores, rng, slot):
-    """(L_BC, ∇_policy, ∇_value) of task slot ``slot`` alone, its batches drawn as ``meta_gradients`` draws them
-    (``fold_in(rng, slot)``): the per-task gradient of the ``sequential`` outer update."""
+    """(SlotStats, ∇_policy, ∇_value) of task slot ``slot`` alone, its batches drawn as ``meta_gradients`` draws
+    them (``fold_in(rng, slot)``): the per-task gradient of the ``sequential`` outer update."""
     batch = jax.tree.map(lambda x: x[0], _slot_batches(config, stores, rng, jnp.reshape(slot, (1,))))
-    grads, (bc, _) = jax.grad(slot_objective, argnums=(1, 2), has_aux=True)(config, policy, value, slot, batch)
-    return bc, grads[0], grads[1]
+    grads, stats = jax.grad(slot_objective, argnums=(1, 2), has_aux=True)(config, policy, value, slot, batch)
+    return stats, grads[0], grads[1]
 
 
 def meta_train(config: MetaConfig, state: MetaState, stores: buffers.SequenceStores, rng,
                progress_fn: Optional[ProgressFn] = None):
-    """``num_meta_steps`` × ``num_outer_steps`` outer steps over the seen tasks; returns (state, outer losses
-    f32[steps]: the mean BC loss over the seen tasks at each step, NaN where an update was skipped).
+    """``num_meta_steps`` × ``num_outer_steps`` outer steps over the seen tasks; returns (state, SlotStats with
+    fields f32[steps]: the means over the seen tasks at each outer step, on that step's batches, before its
+    update; ``bc_loss`` is NaN where an update was skipped).
 
     ``outer_update="mean"``: each outer step is one Adam step on the mean over seen tasks. ``"sequential"``
     (Algorithm 1): each meta step visits the seen tasks in order and makes ``num_outer_steps`` Adam steps on each
     task alone. Outer step (n, k) draws task j's batches from the same key in both, so the readings differ only
-    in when θ moves. An update whose loss or gradient is not finite is skipped.
+    in when θ moves. An update whose loss or gradient is not finite is skipped. With ``optimizer_state="reset"``
+    both Adam states start fresh.
 
-    ``progress_fn`` (``jcomps.progress``), if given, gets ``{"meta_step", "meta_steps", "bc_loss"}`` (meta-training
-    a long sequence takes minutes on a CPU): after every outer step (mean), or after every meta step with
-    ``meta_step`` counted in outer steps (sequential).
+    ``progress_fn`` (``jcomps.progress``), if given, gets ``{"meta_step", "meta_steps", "bc_loss", "value_l2",
+    "value_ev", "adv_abs", "rho"}`` (meta-training a long sequence takes minutes on a CPU): after every outer step
+    (mean), or after every meta step with ``meta_step`` counted in outer steps (sequential).
     """
     policy_opt, value_opt = optimizers(config)
+    if config.optimizer_state == "reset":
+        state = state._replace(policy_opt=policy_opt.init(state.policy), value_opt=value_opt.init(state.value))
     steps = config.num_meta_steps * config.num_outer_steps
     keys = jax.random.split(rng, steps)
 
@@ -323,22 +462,25 @@ def meta_train(config: MetaConfig, state: MetaState, stores: buffers.SequenceSto
         new = MetaState(optax.apply_updates(state.policy, up), optax.apply_updates(state.value, vup), popt, vopt)
         return keep_if_finite(finite & keep, new, state), finite
 
-    def report(step, loss):
+    def report(step, stats: SlotStats):
         if progress_fn is not None:
-            progress_fn({"meta_step": step, "meta_steps": jnp.int32(steps), "bc_loss": loss})
+            progress_fn({"meta_step": step, "meta_steps": jnp.int32(steps), "bc_loss": stats.bc_loss,
+                         "value_l2": stats.value_l2, "value_ev": stats.value_ev, "adv_abs": stats.adv_abs,
+                         "rho": stats.rho})
 
     if config.outer_update == "mean":
         def outer(state: MetaState, xs):
             key, step = xs
-            loss, g, vg = meta_gradients(config, state.policy, state.value, stores, key)
-            report(step + 1, loss)
-            state, finite = apply(state, loss, g, vg)
-            return state, jnp.where(finite, loss, jnp.nan)
+            stats, g, vg = meta_gradients(config, state.policy, state.value, stores, key)
+            report(step + 1, stats)
+            state, finite = apply(state, stats.bc_loss, g, vg)
+            return state, stats._replace(bc_loss=jnp.where(finite, stats.bc_loss, jnp.nan))
 
         return jax.lax.scan(outer, state, (keys, jnp.arange(steps, dtype=jnp.int32)))
 
     task_valid = jnp.asarray(stores.task_valid)
     end, count = _seen(task_valid)
+    zero_stats = SlotStats(*[jnp.zeros((config.num_outer_steps,), jnp.float32)] * len(SlotStats._fields))
 
     def meta_step(state: MetaState, xs):
         step_keys, n = xs  # step_keys: [num_outer_steps] keys of outer steps (n, 0 ... K-1)
@@ -347,19 +489,58 @@ def meta_train(config: MetaConfig, state: MetaState, stores: buffers.SequenceSto
             state, total = carry
 
             def one(state, key):
-                loss, g, vg = slot_gradients(config, state.policy, state.value, stores, key, j)
-                state, finite = apply(state, loss, g, vg, keep=task_valid[j])
-                return state, jnp.where(finite, loss, jnp.nan)
+                stats, g, vg = slot_gradients(config, state.policy, state.value, stores, key, j)
+                state, finite = apply(state, stats.bc_loss, g, vg, keep=task_valid[j])
+                return state, stats._replace(bc_loss=jnp.where(finite, stats.bc_loss, jnp.nan))
 
-            state, losses = jax.lax.scan(one, state, step_keys)
-            return state, total + jnp.where(task_valid[j], losses, 0.0)
+            state, stats = jax.lax.scan(one, state, step_keys)
+            return state, jax.tree.map(lambda t, x: t + jnp.where(task_valid[j], x, 0.0), total, stats)
 
-        state, total = jax.lax.fori_loop(0, end, task, (state, jnp.zeros((config.num_outer_steps,), jnp.float32)))
-        losses = total / count
-        report((n + 1) * config.num_outer_steps, losses[-1])
-        return state, losses
+        state, total = jax.lax.fori_loop(0, end, task, (state, zero_stats))
+        stats = jax.tree.map(lambda x: x / count, total)
+        report((n + 1) * config.num_outer_steps, jax.tree.map(lambda x: x[-1], stats))
+        return state, stats
 
     xs = (keys.reshape((config.num_meta_steps, config.num_outer_steps) + keys.shape[1:]),
           jnp.arange(config.num_meta_steps, dtype=jnp.int32))
-    state, losses = jax.lax.scan(meta_step, state, xs)
-    return state, losses.reshape(-1)
+    state, stats = jax.lax.scan(meta_step, state, xs)
+    return state, jax.tree.map(lambda x: x.reshape(-1), stats)
+
+
+def slot_diagnostics(config: MetaConfig, policy, value, stores: buffers.SequenceStores) -> SlotStats:
+    """SlotStats of every slot on its whole D_j and D*_j (no sampling), fields f32[num_slots]; NaN in unseen slots.
+
+    What the runner reports per task at the start and the end of each meta phase: whether each head predicts the
+    returns of its task's data, and how much each task still contributes to the inner step. A loop over the seen
+    slots (nothing is spent on the others).
+    """
+    task_valid = jnp.asarray(stores.task_valid)
+    num_slots = task_valid.shape[0]
+    end, _ = _seen(task_valid)
+    pick = lambda tree, j: jax.tree.map(lambda x: jax.lax.dynamic_index_in_dim(x, j, keepdims=False), tree)  # noqa
+
+    def body(j, acc):
+        off, skilled = pick(stores.offpolicy, j), pick(stores.skilled, j)
+        skilled_valid = skilled.valid * jnp.isfinite(skilled.returns)[None, :]
+        batch = TaskBatch(off, skilled.obs, skilled.action, skilled_valid)
+        stats = slot_objective(config, policy, value, j, batch)[1]
+        stats = jax.tree.map(lambda x: jnp.where(task_valid[j], x, jnp.nan), stats)
+        return jax.tree.map(lambda a, x: a.at[j].set(x), acc, stats)
+
+    nan = jnp.full((num_slots,), jnp.nan, jnp.float32)
+    return jax.lax.fori_loop(0, end, body, SlotStats(*[nan] * len(SlotStats._fields)))
+
+
+class MetaMetrics(NamedTuple):
+    """What a method with a meta step reports about the meta phase after each task (``TaskMetrics.meta``).
+
+    Attributes:
+      steps: SlotStats, fields f32[num_meta_steps · num_outer_steps]: means over the seen slots per outer step.
+      start: SlotStats, fields f32[num_slots]: each slot on its whole stores before the first outer step (after
+        the new task's head was initialised); NaN in unseen slots.
+      end: the same after the last outer step.
+    """
+
+    steps: SlotStats
+    start: SlotStats
+    end: SlotStats

@@ -6,7 +6,9 @@ host function through ``jax.debug.callback``). The dicts carry:
 
 - after every RL iteration (``ppo.rl_step``): ``iteration``, ``success_rate``, ``mean_return``;
 - after every outer update of a meta-training phase (``meta.meta_train``): ``meta_step``, ``meta_steps``,
-  ``bc_loss``;
+  ``bc_loss``, and the meta step's health as means over the seen tasks: ``value_l2``, ``value_ev`` (the value
+  heads' explained variance of the returns), ``adv_abs`` (mean |Â| of the inner step), ``rho`` (mean clipped
+  importance weight);
 - after every iteration of a compress phase (``pnc``): ``compress_iteration``, ``compress_iterations``, ``kl``;
 - methods add ``task`` (the index of the task being learnt) to all of these;
 - after every task of the continual loop (``continual.run_tasks``): ``task``, ``task_iterations``, ``solved``.

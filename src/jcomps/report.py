@@ -235,6 +235,8 @@ def summarize(description: dict, raws: dict, baseline: Optional[str] = None) -> 
             "seconds": float(raw.seconds),
             "devices": int(raw.devices),
         }
+        if raw.task.meta is not None:
+            entry["meta"] = meta_summary(raw.task.meta)
         if values is not None:
             seed_means = its.astype(np.float64).mean(axis=1)
             m_its, se_its = _mean_se(seed_means)
@@ -260,6 +262,44 @@ def summarize(description: dict, raws: dict, baseline: Optional[str] = None) -> 
             "against": {best[m]: significance(base, raws[best[m]].task.iterations.mean(axis=1))
                         for m in run["methods"] if m != baseline}}
     return results
+
+
+def meta_summary(meta) -> dict:
+    """The health of a method's meta phases (``jcomps.meta.MetaMetrics`` with leading [seeds, tasks]) for
+    ``results.json``: per seed and task, means over the seen slots at the start (before the first outer step,
+    after the new head was initialised) and the end of the meta phase that followed the task, on each slot's whole
+    stores; the newest task's head (slot = task position) and the oldest task's importance weights apart; and the
+    per-slot explained variances and weights at the end."""
+    start = {k: np.asarray(v, np.float64) for k, v in meta.start._asdict().items()}
+    end = {k: np.asarray(v, np.float64) for k, v in meta.end._asdict().items()}
+    seeds, tasks, _ = end["value_ev"].shape
+    newest = lambda x: x[:, np.arange(tasks), np.arange(tasks)]  # noqa: E731 - slot t after task t
+    over_seen = lambda x: np.nanmean(x, axis=-1)  # noqa: E731 - unseen slots are NaN
+    rows = lambda x: [[_json_float(round(float(v), 6)) for v in row] for row in x]  # noqa: E731
+    out = {
+        "statistic": "per seed and task: mean over the seen tasks' slots, each on its whole stores, at the start "
+                     "and the end of the meta phase after the task",
+        "value_ev_start": rows(over_seen(start["value_ev"])),
+        "value_ev_end": rows(over_seen(end["value_ev"])),
+        "newest_value_ev_start": rows(newest(start["value_ev"])),
+        "newest_value_ev_end": rows(newest(end["value_ev"])),
+        "value_ev_targets_end": rows(over_seen(end["value_ev_targets"])),
+        "value_bias_over_return_std_start": rows(over_seen(start["value_bias"] / start["return_std"])),
+        "value_bias_over_return_std_end": rows(over_seen(end["value_bias"] / end["return_std"])),
+        "value_l2_end": rows(over_seen(end["value_l2"])),
+        "adv_abs_end": rows(over_seen(end["adv_abs"])),
+        "rho_end": rows(over_seen(end["rho"])),
+        "oldest_rho_end": rows(end["rho"][:, :, 0]),
+        "bc_loss_start": rows(over_seen(start["bc_loss"])),
+        "bc_loss_end": rows(over_seen(end["bc_loss"])),
+        "per_slot_value_ev_end": [[rows(end["value_ev"][s, t:t + 1, :t + 1])[0] for t in range(tasks)]
+                                  for s in range(seeds)],
+        "per_slot_rho_end": [[rows(end["rho"][s, t:t + 1, :t + 1])[0] for t in range(tasks)] for s in range(seeds)],
+    }
+    for key in ("value_ev_end", "newest_value_ev_start", "rho_end"):
+        out[key + "_mean"] = [_json_float(round(float(v), 6)) for v in np.nanmean(
+            np.asarray([[np.nan if v is None else v for v in row] for row in out[key]], np.float64), axis=0)]
+    return out
 
 
 def _plots(results: dict, raws: dict, directory: str) -> list[str]:
@@ -369,6 +409,29 @@ def _plots(results: dict, raws: dict, directory: str) -> list[str]:
         if a.get_legend_handles_labels()[0]:
             a.legend(fontsize=8)
     save(fig, "heldout_meta_test.png")
+
+    with_meta = {name: m["meta"] for name, m in methods_.items() if "meta" in m}
+    if with_meta:
+        fig, (ax_ev, ax_rho) = plt.subplots(1, 2, figsize=(11, 4))
+        as_array = lambda x: np.array([[np.nan if v is None else v for v in row] for row in x], np.float64)  # noqa
+        for k_, (name, m) in enumerate(with_meta.items()):
+            ev, newest = as_array(m["value_ev_end"]), as_array(m["newest_value_ev_start"])
+            ax_ev.plot(tasks, np.nanmean(ev, axis=0), marker="o", ms=3, color=f"C{k_}", label=f"{name}, all heads")
+            ax_ev.plot(tasks, np.nanmean(newest, axis=0), ls=":", marker="x", ms=3, color=f"C{k_}",
+                       label=f"{name}, newest head before its first step")
+            ax_rho.plot(tasks, np.nanmean(as_array(m["rho_end"]), axis=0), marker="o", ms=3, color=f"C{k_}",
+                        label=f"{name}, all tasks")
+            ax_rho.plot(tasks, np.nanmean(as_array(m["oldest_rho_end"]), axis=0), ls=":", color=f"C{k_}",
+                        label=f"{name}, task 1")
+        ax_ev.axhline(0.0, color="gray", lw=0.8, ls="--")
+        ax_ev.set(xlabel="task", ylabel="explained variance of the returns",
+                  title="Meta step: value heads' fit to their data's returns")
+        ax_rho.set(xlabel="task", ylabel="mean clipped importance weight",
+                   title="Meta step: how much the old tasks contribute")
+        for a in (ax_ev, ax_rho):
+            integer_ticks(a)
+            a.legend(fontsize=7)
+        save(fig, "meta_health.png")
     return written
 
 

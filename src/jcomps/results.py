@@ -42,6 +42,8 @@ class RawResults(NamedTuple):
 
 
 def _leaves(prefix: str, x):
+    if x is None:  # an optional part a method does not report (TaskMetrics.meta)
+        return
     if hasattr(x, "_asdict"):
         for key, value in x._asdict().items():
             yield from _leaves(f"{prefix}{key}.", value)
@@ -54,6 +56,12 @@ def _build(cls, prefix: str, arrays: dict):
     kwargs = {}
     for name in cls._fields:
         tp = hints.get(name)
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        if typing.get_origin(tp) is typing.Union and len(args) == 1:  # Optional[X]: present if any key is
+            tp = args[0]
+            if not any(key.startswith(f"{prefix}{name}.") for key in arrays):
+                kwargs[name] = None
+                continue
         if isinstance(tp, type) and hasattr(tp, "_fields"):
             kwargs[name] = _build(tp, f"{prefix}{name}.", arrays)
         else:
@@ -145,7 +153,7 @@ def truncate(raw: RawResults, num_tasks: int) -> RawResults:
     if not 1 <= num_tasks <= tasks_done(raw):
         raise ValueError(f"num_tasks must be in [1, {tasks_done(raw)}], got {num_tasks}")
     keep = raw.heldout_after_tasks <= num_tasks
-    return raw._replace(task=jax.tree.map(lambda x: x[:, :num_tasks], raw.task),
+    return raw._replace(task=jax.tree.map(lambda x: x[:, :num_tasks], raw.task),  # None (no meta) stays None
                         backward_returns=raw.backward_returns[:, :num_tasks],
                         backward_valid=raw.backward_valid[:, :num_tasks],
                         heldout=jax.tree.map(lambda x: x[:, keep], raw.heldout),

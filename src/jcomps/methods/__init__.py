@@ -5,14 +5,15 @@ A registered method is a constructor and its default config *instance*: the rung
 
 - ``ppo``: single-task PPO from a random initialisation on every task (no transfer);
 - ``ppo_tl``: PPO+TL, PPO on each task with the parameters carried to the next (the paper's baseline);
-- ``gmps``: the meta step without importance weights, V-trace or warm start (its inner advantages standardised
-  per task, as in GMPS's code), and GMPS's RL step: vanilla on-policy policy gradient (one full-batch gradient
-  step per iteration, no ratio clipping);
+- ``gmps``: the meta step without importance weights, V-trace or warm start, and GMPS's RL step: vanilla
+  on-policy policy gradient (one full-batch gradient step per iteration, no ratio clipping);
 - ``gmps_ppo``: as ``gmps`` with our PPO as the RL step;
-- ``gmps_ppo_is``: + the importance-sampled inner gradient with the V-trace baseline, raw advantages (no warm
-  start);
+- ``gmps_ppo_is``: + the importance-sampled inner gradient with the V-trace baseline (no warm start);
 - ``gmps_ppo_is_x2``: + twice the skilled data (|D*_i| = 40; no warm start);
 - ``comps``: GMPS + PPO + IS + the FTML warm start, CoMPS.
+
+Every rung standardises its inner advantages per task or none does (``STANDARDISED_INNER_ADVANTAGES``), so each
+rung adds one feature (``LADDER``).
 
 The paper's other continual baselines:
 
@@ -50,24 +51,43 @@ class Registered(NamedTuple):
     rl_step: dict = {}
 
 
-# The unweighted inner step standardises its advantages per task, as GMPS's code does (``center_adv``): raw
-# advantages made GMPS+PPO's meta step diverge on Ant Goal (docs/design.md, "GMPS+PPO's inner advantages").
-_NO_IS = meta.MetaConfig(importance_sampling=False, vtrace_baseline=False, normalize_advantages=True)
+# Whether the inner step's advantages are standardised per task (GMPS's ``center_adv``) is one choice for the whole
+# ladder, so that no rung changes it: the rung that adds importance sampling changes only the weights and the
+# baseline (docs/design.md, "The ablation ladder: one feature per rung", has both readings measured).
+STANDARDISED_INNER_ADVANTAGES = True
+_META = meta.MetaConfig(normalize_advantages=STANDARDISED_INNER_ADVANTAGES)
+_NO_IS = dataclasses.replace(_META, importance_sampling=False, vtrace_baseline=False)
 _VANILLA_PG = {"num_updates": 1, "minibatch_size": 0, "surrogate": "vanilla"}
 
 REGISTRY: dict[str, Registered] = {
     "ppo_tl": Registered(ppo_tl.PPOTLConfig(), ppo_tl.make),
     "ppo": Registered(ppo_tl.PPOTLConfig(), ppo_tl.make_scratch),
-    "comps": Registered(comps.CoMPSConfig(), comps.make),
+    "comps": Registered(comps.CoMPSConfig(meta=_META), comps.make),
     "gmps": Registered(comps.CoMPSConfig(ppo=dataclasses.replace(ppo.PPOConfig(), **_VANILLA_PG), meta=_NO_IS,
                                          warm_start=False), comps.named("gmps"), _VANILLA_PG),
     "gmps_ppo": Registered(comps.CoMPSConfig(meta=_NO_IS, warm_start=False), comps.named("gmps_ppo")),
-    "gmps_ppo_is": Registered(comps.CoMPSConfig(warm_start=False), comps.named("gmps_ppo_is")),
-    "gmps_ppo_is_x2": Registered(comps.CoMPSConfig(warm_start=False, num_skilled=40), comps.named("gmps_ppo_is_x2")),
+    "gmps_ppo_is": Registered(comps.CoMPSConfig(meta=_META, warm_start=False), comps.named("gmps_ppo_is")),
+    "gmps_ppo_is_x2": Registered(comps.CoMPSConfig(meta=_META, warm_start=False, num_skilled=40),
+                                 comps.named("gmps_ppo_is_x2")),
     "maml_tl": Registered(maml_tl.MAMLTLConfig(), maml_tl.make),
     "pnc": Registered(pnc.PNCConfig(), pnc.make, {"hidden_sizes": pnc.PNCConfig().ppo.hidden_sizes}),
     "pearl": Registered(pearl.PEARLConfig(), pearl.make),
 }
+
+# The paper's ablation ladder (appendix "CoMPS Ablation"): (lower rung, upper rung, the feature the upper adds).
+# Every pair differs in the config fields of its feature and in nothing else (tested).
+LADDER_FEATURES: dict[str, tuple[str, ...]] = {
+    "PPO as the RL step": ("ppo.num_updates", "ppo.minibatch_size", "ppo.surrogate"),
+    "importance-sampled inner step with the V-trace baseline": ("meta.importance_sampling", "meta.vtrace_baseline"),
+    "skilled data x2": ("num_skilled",),
+    "FTML warm start": ("warm_start",),
+}
+LADDER: tuple[tuple[str, str, str], ...] = (
+    ("gmps", "gmps_ppo", "PPO as the RL step"),
+    ("gmps_ppo", "gmps_ppo_is", "importance-sampled inner step with the V-trace baseline"),
+    ("gmps_ppo_is", "gmps_ppo_is_x2", "skilled data x2"),
+    ("gmps_ppo_is", "comps", "FTML warm start"),
+)
 METHODS = tuple(REGISTRY)
 
 
@@ -118,5 +138,5 @@ def env_steps_per_iteration(name: str, family: Family, config=None) -> int:
     return base.env_steps_per_iteration(make(name, family, config))
 
 
-__all__ = ["METHODS", "Method", "collection", "REGISTRY", "Registered", "TaskMetrics", "config_class", "default_config",
+__all__ = ["LADDER", "LADDER_FEATURES", "METHODS", "Method", "collection", "REGISTRY", "Registered", "TaskMetrics", "config_class", "default_config",
            "env_steps_per_iteration", "make"]

@@ -20,6 +20,7 @@ from typing import Any, Callable, NamedTuple, Optional
 import jax
 
 from jcomps import networks
+from jcomps.meta import MetaMetrics
 from jcomps.ppo import IterationMetrics
 
 
@@ -30,11 +31,14 @@ class TaskMetrics(NamedTuple):
       iterations: i32[], iterations-to-success (the budget if the threshold was never reached).
       solved: bool[], whether the success threshold was reached within the budget.
       per_iteration: IterationMetrics with fields of length ``budget``, masked by ``per_iteration.valid``.
+      meta: the health of the meta phase that followed the task (``jcomps.meta.MetaMetrics``) for the methods
+        with CoMPS's meta step; None for the others.
     """
 
     iterations: jax.Array
     solved: jax.Array
     per_iteration: IterationMetrics
+    meta: Optional[MetaMetrics] = None
 
 
 class Method(NamedTuple):

@@ -3,11 +3,13 @@
 Per task i: the RL step (PPO from θ_i) while the experience stores are filled (D*_i: top-20 trajectories by
 return, kept incrementally; D_i: 100 trajectories from the last ⌈0.05·N⌉ iterations with behaviour
 log-probabilities); then the meta step over every seen task j ≤ i, warm-started (FTML) from the policy that just
-finished task i; θ_{i+1} is its result.
+finished task i; θ_{i+1} is its result. Task i's value head starts from the RL step's value function, and the meta
+step's V-trace runs in the RL step's reward units (``meta.MetaConfig.value_init``, ``reward_scale``).
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from typing import Any, NamedTuple, Optional
 
@@ -64,10 +66,23 @@ class CoMPSState(NamedTuple):
     task_index: jax.Array
 
 
+def meta_config(config: CoMPSConfig) -> meta.MetaConfig:
+    """The meta step's config with the fields that follow the RL step resolved: ``reward_scale`` None takes the RL
+    step's reward scale, ``value_learning_rate`` None its learning rate (either may be a traced grid value, so the
+    copy is made without validation; the RL step's config has checked them)."""
+    follow = {"reward_scale": config.ppo.reward_scale, "value_learning_rate": config.ppo.learning_rate}
+    out = copy.copy(config.meta)
+    for name, value in follow.items():
+        if getattr(out, name) is None:
+            object.__setattr__(out, name, value)
+    return out
+
+
 def make(family: Family, config: CoMPSConfig = CoMPSConfig(), progress_fn: Optional[ProgressFn] = None,
          name: str = "comps") -> Method:
     optimizer = ppo.make_optimizer(config.ppo)
-    policy_opt, value_opt = meta.optimizers(config.meta)
+    mconfig = meta_config(config)
+    policy_opt, value_opt = meta.optimizers(mconfig)
     budget = config.ppo.budget_for(family)
     capacity = buffers.recent_capacity(budget, config.recent_fraction)
     T, B = family.max_steps, config.ppo.num_trajectories
@@ -106,10 +121,18 @@ def make(family: Family, config: CoMPSConfig = CoMPSConfig(), progress_fn: Optio
         start = out.params.policy if config.warm_start else {**state.meta.policy,
                                                              "obs_norm": out.params.policy["obs_norm"]}
         meta_state = state.meta._replace(policy=start)
-        meta_state, _ = meta.meta_train(config.meta, meta_state, stores, k_meta, progress_fn=report)
+        if mconfig.value_init == "rl_step":  # the RL step's critic has just been fitted to the data D_i holds
+            meta_state = meta_state._replace(value=meta.set_head(meta_state.value, state.task_index,
+                                                                 out.params.value))
+        new_off = jax.tree.map(lambda x: x[state.task_index], stores.offpolicy)
+        meta_state = meta_state._replace(value=meta.fit_head(mconfig, meta_state.policy, meta_state.value,
+                                                             state.task_index, new_off))
+        before = meta.slot_diagnostics(mconfig, meta_state.policy, meta_state.value, stores)
+        meta_state, steps = meta.meta_train(mconfig, meta_state, stores, k_meta, progress_fn=report)
+        after = meta.slot_diagnostics(mconfig, meta_state.policy, meta_state.value, stores)
         params = out.params._replace(policy=meta_state.policy)
         new = CoMPSState(params, out.opt_state, meta_state, stores, rng, state.task_index + 1)
-        return new, TaskMetrics(out.iterations, out.solved, out.metrics)
+        return new, TaskMetrics(out.iterations, out.solved, out.metrics, meta.MetaMetrics(steps, before, after))
 
     return Method(name, config, family, init, learn_task)
 
