@@ -363,13 +363,13 @@ def test_slot_diagnostics_measure_the_heads_fit_and_the_weights():
 def test_the_reset_reading_starts_each_meta_phase_with_fresh_adam_states():
     stores = _stores(12)
     policy, value = _params()
-    config = dataclasses.replace(CONFIG, num_meta_steps=2)
+    config = dataclasses.replace(CONFIG, num_meta_steps=2, optimizer_state="carry")
     used = jax.jit(lambda s: meta.meta_train(config, s, stores, jax.random.PRNGKey(1)))(
         _meta_state(policy, value, config))[0]  # Adam moments no longer zero
     carry = jax.jit(lambda s: meta.meta_train(config, s, stores, jax.random.PRNGKey(2)))(used)[0]
     reset_config = dataclasses.replace(config, optimizer_state="reset")
     reset = jax.jit(lambda s: meta.meta_train(reset_config, s, stores, jax.random.PRNGKey(2)))(used)[0]
-    fresh = jax.jit(lambda s: meta.meta_train(config, s, stores, jax.random.PRNGKey(2)))(
+    fresh = jax.jit(lambda s: meta.meta_train(reset_config, s, stores, jax.random.PRNGKey(2)))(
         _meta_state(used.policy, used.value, config))[0]
     chex.assert_trees_all_close(reset, fresh, rtol=1e-6)
     assert float(jnp.max(jnp.abs(carry.policy["mean"][0]["w"] - reset.policy["mean"][0]["w"]))) > 1e-6

@@ -77,9 +77,10 @@ class MetaConfig:
     returns, bootstrapped by the head at the time limit); 0: none (before issue 27)."""
     value_fit_learning_rate: float = 1e-3
     """Adam learning rate of that fit."""
-    optimizer_state: str = "carry"
-    """The meta step's Adam states (policy and value heads) at the start of a meta phase: ``carry``, as the last
-    meta phase left them; ``reset``, fresh for every meta phase (docs/design.md)."""
+    optimizer_state: str = "reset"
+    """The meta step's Adam states (policy and value heads) at the start of a meta phase: ``reset``, fresh for every
+    meta phase (the moments of the last phase belong to another θ: the warm start jumps it); ``carry``, as the last
+    meta phase left them (before issue 27; docs/design.md has both measured)."""
     outer_update: str = "mean"
     """How θ is updated: ``mean``, one Adam step on the mean over seen tasks per outer step; ``sequential``,
     Algorithm 1 read literally: per meta step, task after task (newest last), ``num_outer_steps`` Adam steps on
@@ -292,6 +293,21 @@ def _stats(config: MetaConfig, bc, value_l2, values, bootstrap, targets, advanta
         rho=masked_mean(weights, mask))
 
 
+def head_objective(config: MetaConfig, policy, head, batch: TaskBatch):
+    """``slot_objective`` with the slot's value head ``head`` (its MLP layers) given directly: its gradient in
+    ``head`` is that head's slice of the stacked heads' gradient."""
+    off = batch.off
+    # The value heads see observations normalised like the policy's (statistics are constants).
+    values = networks.value_apply(head, networks.normalize_obs(policy, off.traj.obs))
+    bootstrap = networks.value_apply(head, networks.normalize_obs(policy, off.traj.last_obs))
+    log_prob, log_prob_vjp = jax.vjp(lambda p: networks.policy_log_prob(p, off.traj.obs, off.traj.action), policy)
+    advantages, targets, weights = _vtrace_terms(config, log_prob, values, bootstrap, off)
+    adapted = adapt(config, policy, off, advantages, log_prob_vjp)
+    bc = bc_loss(adapted, batch.skilled_obs, batch.skilled_action, batch.skilled_valid)
+    value_l2 = masked_mean(jnp.square(values - targets), off.traj.valid * off.mask[None, :])
+    return bc + value_l2, _stats(config, bc, value_l2, values, bootstrap, targets, advantages, weights, off)
+
+
 def slot_objective(config: MetaConfig, policy, value, slot, batch: TaskBatch):
     """L_BC(φ_slot) + the value head's l2, and SlotStats as aux, for one task slot.
 
@@ -300,16 +316,7 @@ def slot_objective(config: MetaConfig, policy, value, slot, batch: TaskBatch):
     backward pass serves both. The forward passes of the policy and the value head on D_j are shared between the
     importance weights, the targets, the inner objective and the value loss.
     """
-    off = batch.off
-    # The value heads see observations normalised like the policy's (statistics are constants).
-    values = _head(value, networks.normalize_obs(policy, off.traj.obs), slot)
-    bootstrap = _head(value, networks.normalize_obs(policy, off.traj.last_obs), slot)
-    log_prob, log_prob_vjp = jax.vjp(lambda p: networks.policy_log_prob(p, off.traj.obs, off.traj.action), policy)
-    advantages, targets, weights = _vtrace_terms(config, log_prob, values, bootstrap, off)
-    adapted = adapt(config, policy, off, advantages, log_prob_vjp)
-    bc = bc_loss(adapted, batch.skilled_obs, batch.skilled_action, batch.skilled_valid)
-    value_l2 = masked_mean(jnp.square(values - targets), off.traj.valid * off.mask[None, :])
-    return bc + value_l2, _stats(config, bc, value_l2, values, bootstrap, targets, advantages, weights, off)
+    return head_objective(config, policy, head_params(value, slot), batch)
 
 
 def task_loss(config: MetaConfig, policy, value, slot, batch: TaskBatch):
@@ -391,20 +398,27 @@ def meta_gradients(config: MetaConfig, policy, value, stores: buffers.SequenceSt
     num_slots = task_valid.shape[0]
     chunk = task_chunk(config, num_slots)
     end, count = _seen(task_valid)
-    grad_fn = jax.vmap(jax.grad(slot_objective, argnums=(1, 2), has_aux=True), in_axes=(None, None, None, 0, 0))
+    grad_fn = jax.vmap(jax.grad(head_objective, argnums=(1, 2), has_aux=True), in_axes=(None, None, 0, 0))
 
     def body(c, acc):
         slots = c * chunk + jnp.arange(chunk)
         ok = (slots < num_slots) & task_valid[jnp.minimum(slots, num_slots - 1)]
         slots = jnp.minimum(slots, num_slots - 1)
         batch = _zero_unseen(_slot_batches(config, stores, rng, slots), ok)
-        grads, stats = grad_fn(config, policy, value, slots, batch)
-        kept = _zero_unseen((stats, grads), ok)
-        return jax.tree.map(lambda a, x: a + jnp.sum(x, axis=0), acc, kept)
+        heads = jax.vmap(lambda j: head_params(value, j))(slots)
+        (g_policy, g_heads), stats = grad_fn(config, policy, heads, batch)
+        stats, g_policy, g_heads = _zero_unseen((stats, g_policy, g_heads), ok)
+        acc_stats, acc_policy, acc_value = acc
+        # Each head's gradient goes to its own slice of the stacked heads (a scatter-add of one head per slot,
+        # not a sum of whole stacks that are zero but for one head).
+        acc_value = jax.tree.map(lambda a, g: a.at[slots].add(g), acc_value, g_heads)
+        return (jax.tree.map(lambda a, x: a + jnp.sum(x, axis=0), acc_stats, stats),
+                jax.tree.map(lambda a, x: a + jnp.sum(x, axis=0), acc_policy, g_policy), acc_value)
 
     zero = jnp.zeros((), jnp.float32)
-    zeros = (SlotStats(*[zero] * len(SlotStats._fields)), jax.tree.map(jnp.zeros_like, (policy, value)))
-    stats, (g_policy, g_value) = jax.lax.fori_loop(0, (end + chunk - 1) // chunk, body, zeros)
+    zeros = (SlotStats(*[zero] * len(SlotStats._fields)), jax.tree.map(jnp.zeros_like, policy),
+             jax.tree.map(jnp.zeros_like, value))
+    stats, g_policy, g_value = jax.lax.fori_loop(0, (end + chunk - 1) // chunk, body, zeros)
     scale = lambda tree: jax.tree.map(lambda x: x / count, tree)  # noqa: E731
     return scale(stats), scale(g_policy), scale(g_value)
 

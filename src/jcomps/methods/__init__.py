@@ -54,7 +54,7 @@ class Registered(NamedTuple):
 # Whether the inner step's advantages are standardised per task (GMPS's ``center_adv``) is one choice for the whole
 # ladder, so that no rung changes it: the rung that adds importance sampling changes only the weights and the
 # baseline (docs/design.md, "The ablation ladder: one feature per rung", has both readings measured).
-STANDARDISED_INNER_ADVANTAGES = True
+STANDARDISED_INNER_ADVANTAGES = False
 _META = meta.MetaConfig(normalize_advantages=STANDARDISED_INNER_ADVANTAGES)
 _NO_IS = dataclasses.replace(_META, importance_sampling=False, vtrace_baseline=False)
 _VANILLA_PG = {"num_updates": 1, "minibatch_size": 0, "surrogate": "vanilla"}
