@@ -419,6 +419,32 @@ def test_console_turns_runner_events_into_lines(console, tmp_path):
     assert lines[6] == "warning: checkpoint step 2 cannot be read" and lines[7] == "[comps] done in 1m15s"
 
 
+def test_console_shows_the_meta_steps_health(console, tmp_path):
+    from jcomps import meta
+
+    lines = []
+    show = console.Console(lines.append, str(tmp_path), interval=0.0)
+    show({"event": "start", "program": "comps", "family": "cheetah_vel", "sequence": "non-stationary",
+          "num_tasks": 3, "seeds": 2, "grid_points": 1, "padding": 0, "devices": 1, "budget": 4, "chunk": 1,
+          "start_task": 1, "members": ["comps seed 0", "comps seed 1"]})
+    show({"event": "meta_step", "program": "comps", "member": 0, "task": 1, "meta_step": 3, "meta_steps": 125,
+          "bc_loss": -3.0, "value_l2": 0.25, "value_ev": 0.8, "adv_abs": 0.4, "rho": 0.5})
+    assert lines[-1].startswith("[comps] task 2/3 meta-training step 3/125 bc loss -3.000 value l2 0.25 EV 0.80 "
+                                "|A| 0.4 rho 0.50")
+    # After task 2 (slot 1): slots 0 and 1 seen, slot 2 not (NaN); two seeds.
+    per_slot = lambda a, b: np.array([[[a, b, np.nan]], [[a, b, np.nan]]], np.float32)  # noqa: E731 - [S, 1, 3]
+    start = meta.SlotStats(*[per_slot(0.5, 0.5)] * 8)._replace(value_ev=per_slot(0.6, 0.2))
+    end = start._replace(value_ev=per_slot(0.7, 0.9), rho=per_slot(0.4, 0.8), value_bias=per_slot(0.1, 0.3),
+                         return_std=per_slot(1.0, 1.0))
+    steps = meta.SlotStats(*[np.zeros((2, 1, 5), np.float32)] * 8)
+    chunk = _chunk_metrics(2, 1, 4)
+    chunk = chunk._replace(task=chunk.task._replace(meta=meta.MetaMetrics(steps, start, end)))
+    show({"event": "chunk", "program": "comps", "entry": "comps", "start": 1, "stop": 2, "num_tasks": 3,
+          "seeds": [0, 1], "metrics": chunk, "per_task": chunk})
+    assert lines[-1] == ("[comps] task 2/3 meta phase: heads' EV on returns 0.40 -> 0.80 (newest head 0.20 -> 0.90), "
+                         "bias/std +0.20, mean rho 0.60 (oldest task 0.40), |A| 0.5, bc loss 0.500")
+
+
 def test_console_writes_tensorboard(console, tmp_path):
     pytest.importorskip("tensorboardX")
     show = console.Console(lambda line: None, str(tmp_path), tensorboard=True)
