@@ -183,6 +183,11 @@ def _reward_scale(config: MetaConfig):
     return 1.0 if config.reward_scale is None else config.reward_scale
 
 
+def _rewards_and_discounts(config: MetaConfig, traj):
+    """(rewards × ``reward_scale``, per-step discounts γ·(1 − done)), f32[T, m]: what every target here is made of."""
+    return traj.reward * _reward_scale(config), config.discount * (1.0 - traj.done)
+
+
 def _vtrace_terms(config: MetaConfig, log_prob, values, bootstrap, off: buffers.OffPolicyStore):
     """(inner advantages f32[T, m] including clipped ρ, value targets f32[T, m], clipped ρ of the inner step
     f32[T, m]); constants (no gradient). Rewards are scaled by ``reward_scale``.
@@ -191,8 +196,7 @@ def _vtrace_terms(config: MetaConfig, log_prob, values, bootstrap, off: buffers.
     importance weights multiply them (GMPS's ``center_adv``).
     """
     traj = off.traj
-    reward = traj.reward * _reward_scale(config)
-    discounts = config.discount * (1.0 - traj.done)
+    reward, discounts = _rewards_and_discounts(config, traj)
     log_rhos = log_prob - traj.log_prob if config.importance_sampling else jnp.zeros_like(traj.log_prob)
     values, bootstrap, log_rhos = jax.lax.stop_gradient((values, bootstrap, log_rhos))
     if config.vtrace_baseline:
@@ -244,8 +248,7 @@ def fit_head(config: MetaConfig, policy, value, slot, off: buffers.OffPolicyStor
     traj = off.traj
     mask = traj.valid * off.mask[None, :]
     obs, last_obs = networks.normalize_obs(policy, traj.obs), networks.normalize_obs(policy, traj.last_obs)
-    reward = traj.reward * _reward_scale(config)
-    discounts = config.discount * (1.0 - traj.done)
+    reward, discounts = _rewards_and_discounts(config, traj)
     optimizer = optax.adam(config.value_fit_learning_rate)
 
     def loss(head):
@@ -279,8 +282,7 @@ def _stats(config: MetaConfig, bc, value_l2, values, bootstrap, targets, advanta
         (values, bootstrap, targets, advantages, weights))
     traj = off.traj
     mask = traj.valid * off.mask[None, :]
-    returns = vtrace.discounted_returns(traj.reward * _reward_scale(config), config.discount * (1.0 - traj.done),
-                                        bootstrap)
+    returns = vtrace.discounted_returns(*_rewards_and_discounts(config, traj), bootstrap)
     r_mean = masked_mean(returns, mask)
     return SlotStats(
         bc_loss=bc,
