@@ -157,7 +157,8 @@ def render(run_dir: str, methods_=None, seed=None, tasks=None, mean=False, episo
                     rng = jax.random.fold_in(jax.random.PRNGKey(seed), t)
                     # the policy for task t (PEARL's latent from task t's replay buffer); a task not learnt yet
                     # meets the policy after the last one learnt
-                    policy = (methods.base.policy_for(method, state, jnp.int32(t - 1), jax.random.fold_in(rng, 1))
+                    policy = (methods.base.policy_for(method, state, jnp.int32(t - 1), task,
+                                                        jax.random.fold_in(rng, 1))
                               if t <= learnt else state.params.policy)
                     sims, rewards, success, valid, xy = episode_fn(family, act, policy, task, rng, n_episodes,
                                                             jnp.float32(mean))

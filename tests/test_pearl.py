@@ -144,7 +144,7 @@ def test_pearl_learn_task_reports_the_shared_metrics(tiny, family):
     assert 1 <= int(m1.iterations) <= TINY.budget and int(s1.task_index) == 1
     chex.assert_trees_all_equal_shapes_and_dtypes(s1, s0)  # a lax.scan over tasks can carry it
     assert methods.base.env_steps_per_iteration(method) == TINY.num_trajectories * family.max_steps
-    policy = methods.base.policy_for(method, s1, jnp.int32(0), jax.random.PRNGKey(0))
+    policy = methods.base.policy_for(method, s1, jnp.int32(0), None, jax.random.PRNGKey(0))
     assert policy["z"].shape == (TINY.latent_size,)
     held = continual.heldout_adaptation(method, continual.EvalConfig(heldout_iterations=1, heldout_budget=3), s1,
                                         envs.held_out(family), jax.random.PRNGKey(1))
@@ -193,8 +193,8 @@ def test_the_encoder_learns_through_the_critic_loss(family):
 def test_policy_for_reads_each_slot_context(tiny):
     method, _, _, (s2, _) = tiny
     key = jax.random.PRNGKey(11)
-    z0 = methods.base.policy_for(method, s2, jnp.int32(0), key)["z"]
-    z1 = methods.base.policy_for(method, s2, jnp.int32(1), key)["z"]
+    z0 = methods.base.policy_for(method, s2, jnp.int32(0), None, key)["z"]
+    z1 = methods.base.policy_for(method, s2, jnp.int32(1), None, key)["z"]
     assert z0.shape == (TINY.latent_size,) and not np.allclose(z0, z1)
 
 

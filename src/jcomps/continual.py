@@ -163,7 +163,7 @@ def run_chunk(method: Method, eval_config: EvalConfig, state, sequence, start, c
         keys = jax.vmap(lambda d: jax.random.fold_in(jax.random.fold_in(eval_key, i), d))(jnp.arange(k))
         def back(j, key):
             j = jnp.maximum(j, 0)  # the rollout keeps ``key`` (the same stream as before policy_for existed)
-            policy = base.policy_for(method, new_state, j, jax.random.fold_in(key, 7))
+            policy = base.policy_for(method, new_state, j, task_at(j), jax.random.fold_in(key, 7))
             return _mean_return(method, policy, task_at(j), key)
 
         returns = jax.vmap(back)(prev, keys)

@@ -57,9 +57,10 @@ class Method(NamedTuple):
         count (the budget's iterations) already does.
       act: how the method's policies act (``jcomps.acting.ActFn``); None: the Gaussian policies of the PPO-based
         methods (``networks.action_from_noise``).
-      policy_for: ``(state, slot i32[], rng) -> policy``, the policy that acts on the task learnt in ``slot``
-        (backward transfer, replays); None: ``state.params.policy`` on every task. PEARL's infers its latent from
-        the slot's replay buffer.
+      policy_for: ``(state, slot i32[], task, rng) -> policy``, the policy that acts on ``task``, the task learnt
+        in ``slot`` (backward transfer, forgetting, replays); None: ``state.params.policy`` on every task. PEARL's
+        infers its latent from the slot's replay buffer; MAML+TL's adapts θ by its inner step on fresh data of
+        ``task``.
       adapt: ``(state, task, rng, iterations) -> (mean_return f32[iterations], success_rate f32[iterations])``,
         the method's own meta-test on a held-out task, nothing kept; None: PPO from ``state.params``
         (``continual.heldout_adaptation``).
@@ -95,8 +96,8 @@ def act_fn(method: Method):
     return networks.action_from_noise if method.act is None else method.act
 
 
-def policy_for(method: Method, state, slot, rng):
-    """The policy of ``state`` that acts on the task learnt in ``slot`` (``Method.policy_for``)."""
+def policy_for(method: Method, state, slot, task, rng):
+    """The policy of ``state`` that acts on ``task``, the task learnt in ``slot`` (``Method.policy_for``)."""
     if method.policy_for is None:
         return state.params.policy
-    return method.policy_for(state, slot, rng)
+    return method.policy_for(state, slot, task, rng)

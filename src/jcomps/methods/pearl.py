@@ -431,7 +431,7 @@ def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optio
                        task_index=state.task_index + 1)
         return s, TaskMetrics(out.it, out.solved, out.metrics)
 
-    def policy_for(state: PEARLState, slot, rng):
+    def policy_for(state: PEARLState, slot, task, rng):  # z from the slot's data, not the task's
         return {**state.params.policy, "z": draw_z(state.encoder, state.replay, slot, rng)}
 
     def adapt(state: PEARLState, task, rng, iterations: int):
