@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jcomps import envs, methods, networks, ppo
+from jcomps import acting, continual, envs, methods, networks, ppo
 from jcomps.methods import maml_tl, pnc
 
 OBS, ACT, N = 3, 2, 12
@@ -89,6 +89,101 @@ def test_maml_inner_step_is_a_policy_gradient_ascent_step():
     for a, b in zip(jax.tree.leaves(adapted), jax.tree.leaves(expected)):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
     assert float(objective(adapted)) > float(objective(params.policy))  # a small ascent step raises J
+
+
+# --- MAML+TL's evaluations: the adapted policy ---
+
+MAML_PPO = dataclasses.replace(TINY_PPO, budget=2)
+
+
+@pytest.fixture(scope="module")
+def maml_chunk():
+    """MAML+TL after two Point Goal tasks through ``continual.run_chunk`` (backward transfer on the previous
+    task): (method, eval key, sequence, final state, ChunkMetrics)."""
+    family = envs.make("point_goal")
+    method = methods.make("maml_tl", family, maml_tl.MAMLTLConfig(ppo=MAML_PPO))
+    seq = envs.sequence(family, num_tasks=2)
+    key = jax.random.PRNGKey(5)
+    run = jax.jit(lambda s, k: continual.run_chunk(method, continual.EvalConfig(backward_tasks=1), s, seq,
+                                                   jnp.int32(0), 2, k))
+    state, metrics = run(method.init(jax.random.PRNGKey(0)), key)
+    return method, key, seq, state, metrics
+
+
+def _task(seq, i):
+    return jax.tree.map(lambda x: x[i], seq)
+
+
+def _mean_return(method, policy, task, key):
+    traj = acting.rollout(method.family, policy, task, key, MAML_PPO.num_trajectories)
+    return jnp.mean(jnp.sum(traj.reward, axis=0))
+
+
+def _max_diff(a, b):
+    return max(float(jnp.max(jnp.abs(x - y))) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
+
+
+def test_maml_policy_for_is_the_inner_step_on_fresh_episodes_of_the_task(maml_chunk):
+    method, _, seq, state, _ = maml_chunk
+    key, theta = jax.random.PRNGKey(3), state.params.policy
+    phi = jax.jit(lambda t: methods.base.policy_for(method, state, jnp.int32(0), t, key))
+
+    @jax.jit
+    def by_hand(task):
+        traj = acting.rollout(method.family, theta, task, key, MAML_PPO.num_trajectories)
+        return maml_tl.inner_step(method.config, theta, ppo.flat_batch(MAML_PPO, state.params, traj))
+
+    phi0, phi1 = phi(_task(seq, 0)), phi(_task(seq, 1))
+    chex.assert_trees_all_close(phi0, by_hand(_task(seq, 0)), rtol=1e-5, atol=1e-6)
+    assert _max_diff(phi0, theta) > 1e-4  # the inner step moves θ …
+    assert _max_diff(phi0, phi1) > 1e-4  # … on the evaluated task's data
+    # with a vanishing inner step φ is θ
+    tiny_step = methods.make("maml_tl", method.family, maml_tl.MAMLTLConfig(ppo=MAML_PPO, inner_learning_rate=1e-9))
+    still = jax.jit(lambda t: methods.base.policy_for(tiny_step, state, jnp.int32(0), t, key))(_task(seq, 0))
+    chex.assert_trees_all_close(still, theta, rtol=0, atol=1e-7)
+
+
+def test_maml_backward_transfer_evaluates_the_adapted_policy(maml_chunk):
+    """After task 1 the policy is evaluated on task 0 (``run_chunk``'s keys: fold_in(fold_in(key, 1), 0) for
+    the rollout, its fold_in 7 for ``policy_for``): φ's return, not θ's."""
+    method, eval_key, seq, state, metrics = maml_chunk
+    assert np.asarray(metrics.backward_valid).tolist() == [[False], [True]]
+    key = jax.random.fold_in(jax.random.fold_in(eval_key, 1), 0)
+
+    @jax.jit
+    def returns(task):
+        phi = methods.base.policy_for(method, state, jnp.int32(0), task, jax.random.fold_in(key, 7))
+        return _mean_return(method, phi, task, key), _mean_return(method, state.params.policy, task, key)
+
+    adapted, theta = returns(_task(seq, 0))
+    np.testing.assert_allclose(float(metrics.backward_returns[1, 0]), float(adapted), rtol=1e-5)
+    assert abs(float(adapted) - float(theta)) > 1e-3
+
+
+def test_maml_adapt_runs_inner_steps_from_theta_one_batch_each(maml_chunk):
+    """Entry 0 is θ zero-shot; entry 1 the policy after one inner step on entry 0's batch (``policy_for``'s φ
+    with that key), the policy MAML reports after adaptation; later entries step on from there. The held-out
+    meta-test runs it."""
+    method, _, seq, state, _ = maml_chunk
+    task, rng = _task(seq, 1), jax.random.PRNGKey(9)
+    returns, success = jax.jit(lambda k: method.adapt(state, task, k, 3))(rng)
+    assert returns.shape == success.shape == (3,)
+    keys = jax.random.split(rng, 3)
+
+    @jax.jit
+    def by_hand():
+        theta = state.params.policy
+        phi1 = methods.base.policy_for(method, state, jnp.int32(0), task, keys[0])
+        phi2 = maml_tl.adapt_on(method.config, method.family, state.params, phi1, task, keys[1])[0]
+        return jnp.stack([_mean_return(method, p, task, k) for p, k in zip((theta, phi1, phi2), keys)])
+
+    np.testing.assert_allclose(np.asarray(returns), np.asarray(by_hand()), rtol=1e-5)
+    eval_config = continual.EvalConfig(heldout_iterations=1, heldout_budget=3)
+    tasks = jax.tree.map(lambda x: x[:2], envs.held_out(method.family))
+    held = jax.jit(lambda k: continual.heldout_adaptation(method, eval_config, state, tasks, k))(rng)
+    direct = jax.jit(jax.vmap(lambda t, k: method.adapt(state, t, k, 3)))(tasks, jax.random.split(rng, 2))
+    np.testing.assert_allclose(np.asarray(held.mean_return), np.asarray(direct[0][:, :2]), rtol=1e-5)
+    assert held.iterations.shape == (2,)
 
 
 # --- Progress & Compress ---

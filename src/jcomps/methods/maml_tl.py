@@ -15,7 +15,14 @@ One iteration on task i:
    loss on both batches.
 
 An iteration collects twice the env steps of a PPO iteration (``Method.env_steps_per_iteration``). The state's
-``params`` hold θ: the next task starts from it and the evaluations read it (docs/design.md, "MAML+TL").
+``params`` hold θ, which the next task starts from; the evaluations read what MAML reports, the adapted policy
+(docs/design.md, "MAML+TL"):
+
+- ``policy_for`` (backward transfer, replays): φ after one inner step from θ on ``num_trajectories`` fresh
+  episodes of the evaluated task, as in training's steps 1–2;
+- ``adapt`` (the held-out meta-test): entry 0 is θ (zero-shot), entry n the policy after n inner steps, each on
+  the batch the previous entry's policy collected (so entry 1 is training's post-update policy, and each entry
+  costs one batch, as a PPO iteration of the other methods' meta-test).
 """
 
 from __future__ import annotations
@@ -97,6 +104,17 @@ def inner_step(config: MAMLTLConfig, policy: dict, pre: dict) -> dict:
     return jax.tree.map(lambda p, g: p + config.inner_learning_rate * g, policy, grads)
 
 
+def adapt_on(config: MAMLTLConfig, family: Family, params: networks.ActorCriticParams, policy: dict, task,
+             rng: jax.Array) -> tuple[dict, dict, acting.Trajectory]:
+    """One inner step of ``policy`` on ``task``: ``num_trajectories`` episodes with ``policy`` (key ``rng``), GAE
+    advantages from ``params.value`` (the baseline training fits), then ``inner_step``. Returns (the adapted
+    policy, the flat batch, the episodes). With ``policy`` = ``params.policy`` it is training's steps 1–2 (which
+    call it)."""
+    traj = acting.rollout(family, policy, task, rng, config.ppo.num_trajectories)
+    pre = ppo.flat_batch(config.ppo, networks.ActorCriticParams(policy, params.value), traj)
+    return inner_step(config, policy, pre), pre, traj
+
+
 def outer_loss(config: MAMLTLConfig, params: networks.ActorCriticParams, pre: dict, post: dict):
     """PPO's loss of the adapted policy φ(θ) on the (minibatch of the) post-update batch ``post``, with the value
     loss averaged over ``post`` and ``pre["minibatch"]`` (the same samples' share of the pre-update batch), so the
@@ -158,9 +176,7 @@ def make(family: Family, config: MAMLTLConfig = MAMLTLConfig(), progress_fn: Opt
         def body(c):
             params, opt_state, key, it, _, metrics = c
             key, k_pre, k_post, k_upd = jax.random.split(key, 4)
-            pre_traj = acting.rollout(family, params.policy, task, k_pre, B)
-            pre = ppo.flat_batch(pcfg, params, pre_traj)
-            adapted = inner_step(config, params.policy, pre)
+            adapted, pre, pre_traj = adapt_on(config, family, params, params.policy, task, k_pre)
             post_traj = acting.rollout(family, adapted, task, k_post, B)
             success_rate = family.success_rate(post_traj.success, post_traj.valid)
             mean_return = jnp.mean(jnp.sum(post_traj.reward, axis=0))
@@ -187,4 +203,19 @@ def make(family: Family, config: MAMLTLConfig = MAMLTLConfig(), progress_fn: Opt
         new = MAMLTLState(params, opt_state, rng, state.task_index + 1)
         return new, TaskMetrics(it, solved, metrics)
 
-    return Method("maml_tl", config, family, init, learn_task, env_steps_per_iteration=2 * B * family.max_steps)
+    def policy_for(state: MAMLTLState, slot, task, rng):  # φ: one inner step from θ on fresh data of ``task``
+        return adapt_on(config, family, state.params, state.params.policy, task, rng)[0]
+
+    def adapt(state: MAMLTLState, task, rng, iterations: int):
+        """Entry n: ``num_trajectories`` episodes of the policy after n inner steps from θ (entry 0: θ); each
+        batch is the data of the next inner step (a step whose result is not finite is skipped)."""
+        def one(policy, key):
+            adapted, _, traj = adapt_on(config, family, state.params, policy, task, key)
+            out = (jnp.mean(jnp.sum(traj.reward, axis=0)), family.success_rate(traj.success, traj.valid))
+            return keep_if_finite(all_finite(adapted), adapted, policy), out
+
+        _, (returns, success) = jax.lax.scan(one, state.params.policy, jax.random.split(rng, iterations))
+        return returns, success
+
+    return Method("maml_tl", config, family, init, learn_task, env_steps_per_iteration=2 * B * family.max_steps,
+                  policy_for=policy_for, adapt=adapt)
