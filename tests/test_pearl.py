@@ -16,7 +16,7 @@ from jcomps.methods import pearl
 
 TINY = pearl.PEARLConfig(num_trajectories=2, budget=1, num_updates=1, minibatch_size=8, meta_batch=2, tau=0.05,
                          context_size=4, hidden_sizes=(8, 8), encoder_hidden_sizes=(8,), max_tasks=3,
-                         buffer_size=1000)
+                         buffer_size=1000, initial_steps=100)
 
 
 @pytest.fixture(scope="module")
@@ -110,8 +110,11 @@ def test_a_gradient_step_moves_the_targets_by_exactly_tau(tiny):
 def test_buffers_keep_every_task_and_never_mix_slots(tiny, family):
     method, s0, (s1, m1), (s2, m2) = tiny
     batch = TINY.num_trajectories * family.max_steps
-    np.testing.assert_array_equal(s1.replay.count, [int(m1.iterations) * batch, 0, 0])
-    np.testing.assert_array_equal(s2.replay.count, [int(m1.iterations) * batch, int(m2.iterations) * batch, 0])
+    first = TINY.initial_episodes(family) * family.max_steps  # the prior-z collection before the first iteration
+    assert first == 100 and method.env_steps_before_task == first
+    np.testing.assert_array_equal(s1.replay.count, [first + int(m1.iterations) * batch, 0, 0])
+    np.testing.assert_array_equal(s2.replay.count, [first + int(m1.iterations) * batch,
+                                                    first + int(m2.iterations) * batch, 0])
     chex.assert_trees_all_equal(jax.tree.map(lambda x: x[0], s2.replay), jax.tree.map(lambda x: x[0], s1.replay))
     # unit laws: a write to slot 1 leaves slot 0 as it was; a sample holds only rows written to that slot; the
     # ring overwrites its oldest batch
@@ -132,6 +135,20 @@ def test_buffers_keep_every_task_and_never_mix_slots(tiny, family):
     assert int(store.count[1]) == 3 * batch
     rows, mask = buffers.transitions_sample(buffers.transitions_init(2, batch, 2, 2), 0, 4, jax.random.PRNGKey(5))
     np.testing.assert_array_equal(mask, 0.0)  # an empty slot gives no valid row
+    # a ring that is not a multiple of the batch wraps around; a cleared slot is sampled from its new rows only
+    half = batch // 2
+    ring = buffers.transitions_init(1, 3 * half, family.obs_size, family.action_size)
+    ring = buffers.transitions_add(buffers.transitions_add(ring, 0, marked(1.0)), 0, marked(2.0))
+    np.testing.assert_array_equal(ring.obs[0, :half], 2.0)
+    np.testing.assert_array_equal(ring.obs[0, half:batch], 1.0)
+    np.testing.assert_array_equal(ring.obs[0, batch:], 2.0)
+    small = buffers.transitions_init(1, half, family.obs_size, family.action_size)  # a batch larger than the ring
+    np.testing.assert_array_equal(buffers.transitions_add(small, 0, traj).obs[0],
+                                  buffers.transitions_of(traj)["obs"][batch - half:])
+    cleared = buffers.transitions_add(buffers.transitions_clear(ring, 0), 0, marked(3.0))
+    rows, mask = buffers.transitions_sample(cleared, 0, 256, jax.random.PRNGKey(6))
+    np.testing.assert_array_equal(rows["obs"], 3.0)
+    assert int(cleared.count[0]) == batch
     # the next observation of the last step is the one reached at T_max (a truncation, not a termination)
     flat = buffers.transitions_of(traj)
     np.testing.assert_array_equal(flat["next_obs"].reshape(traj.obs.shape)[-1], traj.last_obs)
@@ -213,7 +230,10 @@ def test_auto_alpha_follows_the_entropy_and_contexts_without_next_obs(family):
 
 @pytest.mark.parametrize("field,value", [("kl_weight", -1.0), ("tau", 0.0), ("latent_size", 0), ("alpha", 0.0),
                                          ("meta_batch", 0), ("hidden_sizes", ()), ("policy_reg", -1.0),
-                                         ("current_slots", -1), ("current_slots", 5)])
+                                         ("current_slots", -1), ("current_slots", 5), ("num_updates", 0),
+                                         ("updates_per_step", 0.0), ("initial_steps", -1),
+                                         ("context_source", "posterior"), ("prior_fraction", 1.0),
+                                         ("prior_fraction", 0.01)])
 def test_bad_pearl_config_names_the_field(field, value):
     with pytest.raises(ValueError, match=field):
         pearl.PEARLConfig(**{field: value})
@@ -233,8 +253,63 @@ def test_gradient_steps_draw_seen_slots_uniformly_or_keep_the_current_task():
     assert (np.asarray(pearl.draw_slots(everything, count, 2, keys[0])) == 2).all()
 
 
-def test_pearl_ignores_the_family_ppo_settings():
-    assert methods.default_config("pearl", "cheetah_vel") == pearl.PEARLConfig()
+def test_pearl_takes_oysters_family_settings_not_the_family_ppo_settings():
+    assert methods.default_config("pearl", "cheetah_vel") == pearl.PEARLConfig(
+        context_size=100, updates_per_step=0.4, prior_fraction=0.4)
+    assert methods.default_config("pearl", "metaworld") == pearl.PEARLConfig()
+    ant_goal = methods.default_config("pearl", "ant_goal")
+    assert (ant_goal.kl_weight, ant_goal.context_size) == (10.0, 256)  # kl_lambda 1.0 × its meta_batch 10
+
+
+def test_oysters_ratio_of_gradient_steps_to_env_steps(family):
+    """The default gradient steps per iteration are ``updates_per_step`` × the env steps collected (oyster's 0.5:
+    1,000 per Point Goal iteration of 20 × 100 steps); an explicit ``num_updates`` wins."""
+    config = methods.default_config("pearl", family)
+    assert config.num_updates is None and config.updates_for(family) == 1000
+    assert dataclasses.replace(config, num_updates=64).updates_for(family) == 64
+    assert config.initial_episodes(family) == 2 and config.prior_episodes == 10  # oyster's 200 steps; 200 of 400
+
+
+def test_the_encoder_buffer_holds_the_last_iterations_prior_episodes(tiny, family):
+    """oyster's reading: each iteration empties slot i's encoder buffer and fills it with its prior-z episodes,
+    which also go to the replay (before the posterior episodes); contexts, backward transfer and the next
+    iteration's posterior read it alone."""
+    method, s0, (s1, m1), _ = tiny
+    prior_rows = TINY.prior_episodes * family.max_steps
+    first = TINY.initial_episodes(family) * family.max_steps
+    assert int(m1.iterations) == 1 and int(s1.contexts.count[0]) == prior_rows
+    for key in ("obs", "action", "reward"):  # the iteration's prior episodes, as the replay holds them
+        np.testing.assert_array_equal(getattr(s1.contexts, key)[0, :prior_rows],
+                                      getattr(s1.replay, key)[0, first:first + prior_rows])
+    again, _ = jax.jit(method.learn_task)(s1._replace(task_index=jnp.int32(0)), envs.task_at(family, 0))
+    assert int(again.contexts.count[0]) == prior_rows  # emptied, then refilled: never accumulated
+    assert not np.array_equal(again.contexts.obs[0, :prior_rows], s1.contexts.obs[0, :prior_rows])
+    replay_reading = methods.make("pearl", family, dataclasses.replace(TINY, context_source="replay"))
+    assert replay_reading.init(jax.random.PRNGKey(0)).contexts.obs.shape[1] == 0  # no encoder buffer
+
+
+def test_the_kl_weighs_per_task_whatever_the_meta_batch(family):
+    """``kl_weight`` multiplies the mean KL over a step's slots (oyster's kl_lambda × its meta-batch, per task), so
+    the same context in 1 or 3 slots gives the same loss (a sum over slots would triple it)."""
+    cfg = dataclasses.replace(TINY, kl_weight=2.0)
+    nets = pearl.make_networks(cfg, family)
+    _, critic_loss, _ = pearl.sac_losses.make_losses(nets.sac, cfg.reward_scale, cfg.discount, family.action_size)
+    k = jax.random.split(jax.random.PRNGKey(3), 6)
+    q, policy_net = nets.sac.q_network.init(k[0]), nets.sac.policy_network.init(k[1])
+    encoder = nets.encoder.init(k[2], jnp.zeros((1, nets.context_size)))
+    context = jax.random.normal(k[3], (1, 4, nets.context_size))
+
+    def loss(M):
+        rows = {"obs": jnp.zeros((M, 2, family.obs_size)), "action": jnp.zeros((M, 2, family.action_size)),
+                "reward": jnp.zeros((M, 2)), "done": jnp.zeros((M, 2)), "next_obs": jnp.zeros((M, 2, family.obs_size))}
+        total, (q_loss, kl, _) = pearl.critic_objective(cfg, nets, critic_loss, (q, encoder), policy_net, q, 1.0, rows,
+                                                        jnp.zeros((M, 2)), jnp.repeat(context, M, 0),
+                                                        jnp.ones((M, 4)), k[4])
+        return float(total), float(q_loss), float(kl)
+
+    (one, q1, kl1), (three, q3, kl3) = loss(1), loss(3)
+    assert q1 == q3 == 0.0 and kl1 > 0  # no valid row: the KL term alone
+    assert one == pytest.approx(2.0 * kl1, rel=1e-6) and three == pytest.approx(one, rel=1e-6)
 
 
 # --- through the runner: CLI, chunks, checkpoints, exact resume ---
@@ -242,7 +317,8 @@ def test_pearl_ignores_the_family_ppo_settings():
 TINY_RUN = ["--methods", "pearl", "--num-tasks", "3", "--seeds", "2", "--chunk-tasks", "1", "--budget", "2",
             "--num-trajectories", "2", "--hidden-sizes", "8", "8", "--num-updates", "2", "--minibatch-size", "8",
             "--set", "pearl.encoder_hidden_sizes=8", "--set", "pearl.context_size=4", "--set", "pearl.max_tasks=3",
-            "--set", "pearl.buffer_size=1000", "--heldout-iterations", "1", "--heldout-budget", "2",
+            "--set", "pearl.buffer_size=1000", "--set", "pearl.initial_steps=100", "--heldout-iterations", "1",
+            "--heldout-budget", "2",
             "--backward-tasks", "1"]
 
 

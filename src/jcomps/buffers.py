@@ -229,22 +229,23 @@ def finite_transitions(traj: Trajectory) -> dict:
 
 
 def transitions_add(store: TransitionStore, slot: jax.Array, traj: Trajectory) -> TransitionStore:
-    """Writes the batch ``traj`` into slot ``slot``'s ring, overwriting its oldest transitions when full. The
-    capacity must be a multiple of the batch's T·B (``transition_capacity``), so a batch is one block.
-    Transitions holding NaN or infinity are stored as zeros with ``valid`` 0 (never sampled)."""
+    """Writes the batch ``traj`` into slot ``slot``'s ring, overwriting its oldest transitions when full (a batch
+    larger than the ring keeps its last ``capacity`` transitions). Transitions holding NaN or infinity are stored
+    as zeros with ``valid`` 0 (never sampled)."""
     flat = finite_transitions(traj)
     n = flat["reward"].shape[0]
     capacity = store.reward.shape[1]
-    if capacity % n:
-        raise ValueError(f"buffer capacity {capacity} is not a multiple of the batch's {n} transitions")
-    pos = store.count[slot] % capacity
-
-    def put(buf, x):
-        start = (slot, pos) + (0,) * (buf.ndim - 2)
-        return jax.lax.dynamic_update_slice(buf, x[None].astype(buf.dtype), start)
-
-    fields = {k: put(getattr(store, k), v) for k, v in flat.items()}
+    keep = min(n, capacity)  # of a batch larger than the ring, the last ``capacity`` rows survive
+    flat = jax.tree.map(lambda x: x[n - keep:], flat)
+    idx = (store.count[slot] + (n - keep) + jnp.arange(keep)) % capacity
+    fields = {k: getattr(store, k).at[slot, idx].set(v.astype(getattr(store, k).dtype)) for k, v in flat.items()}
     return TransitionStore(**fields, count=store.count.at[slot].add(n))
+
+
+def transitions_clear(store: TransitionStore, slot: jax.Array) -> TransitionStore:
+    """Slot ``slot`` emptied (its count set to 0; the rows are overwritten by the next writes and never sampled
+    before: ``transitions_sample`` draws from the first ``count`` rows)."""
+    return store._replace(count=store.count.at[slot].set(0))
 
 
 def transition_capacity(size: int, batch: int) -> int:

@@ -117,6 +117,7 @@ def _differences(a, b, prefix="") -> list[str]:
 UNRESUMABLE_BEFORE = {
     "meta.value_init": "CoMPS's meta step now keeps one value network per task and starts a new task's from the RL "
                        "step's critic (issue 27)",
+    "context_source": "PEARL now keeps oyster's encoder buffers and weighs its KL per task (issue 28)",
 }
 
 

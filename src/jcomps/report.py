@@ -173,12 +173,13 @@ def default_baseline(methods_run) -> Optional[str]:
 
 def env_steps(description: dict, family, method: str, values: Optional[dict]) -> tuple[int, int]:
     """Env steps one iteration of ``method`` collects in the run ``description`` on its ``family`` (at grid point
-    ``values``), and those every task costs beyond its counted iterations (``Method.env_steps_per_task``)."""
+    ``values``), those a solved task costs beyond its counted iterations (``Method.env_steps_per_task``) and those
+    every task costs before its first iteration (``Method.env_steps_before_task``)."""
     config = cli.config_from_dict(methods.default_config(method, family), description["methods"][method])
     for field, value in (values or {}).items():
         config = grids.replace_flat(config, field, value)
     built = methods.make(method, family, config)  # once: it holds both figures
-    return methods.base.env_steps_per_iteration(built), built.env_steps_per_task
+    return methods.base.env_steps_per_iteration(built), built.env_steps_per_task, built.env_steps_before_task
 
 
 def summarize(description: dict, raws: dict, baseline: Optional[str] = None) -> dict:
@@ -199,10 +200,11 @@ def summarize(description: dict, raws: dict, baseline: Optional[str] = None) -> 
         mean, se = _mean_se(its)
         bt = backward_transfer(raw)
         h_ret = raw.heldout.mean_return.mean(axis=2)  # [seeds, points, iterations + 1], averaged over tasks
-        steps, task_steps = env_steps(description, family, method, values)
+        steps, task_steps, before_steps = env_steps(description, family, method, values)
         # Samples-to-success per seed and task: MAML+TL's iterations collect two batches, PPO's one; PNC's solved
-        # tasks add their compress phase (an unsolved task's budget count includes it already).
-        samples = its * steps + raw.task.solved * task_steps
+        # tasks add their compress phase (an unsolved task's budget count includes it already); PEARL's every task
+        # its initial prior-z collection.
+        samples = its * steps + raw.task.solved * task_steps + before_steps
         samples_mean, samples_se = _mean_se(samples)
         entry = results["methods"][name] = {
             "iterations_to_success": its.astype(int).tolist(),
@@ -210,6 +212,7 @@ def summarize(description: dict, raws: dict, baseline: Optional[str] = None) -> 
             "iterations_to_success_se": se.round(3).tolist(),
             "env_steps_per_iteration": int(steps),
             "env_steps_per_task": int(task_steps),
+            "env_steps_before_task": int(before_steps),
             "env_steps_to_success": samples.astype(np.int64).tolist(),
             "env_steps_to_success_mean": samples_mean.round(1).tolist(),
             "env_steps_to_success_se": samples_se.round(1).tolist(),

@@ -105,11 +105,14 @@ def config_class(name: str):
 def default_config(name: str, family: Family | str):
     """Method ``name``'s default config on ``family``: its registered default with the family's calibrated PPO
     settings (``jcomps.ppo.FAMILY_DEFAULTS``) for the RL step, apart from the fields that define the method's RL
-    step (``Registered.rl_step``), and the family's meta-step settings (``jcomps.meta.FAMILY_DEFAULTS``)."""
+    step (``Registered.rl_step``), and the family's meta-step settings (``jcomps.meta.FAMILY_DEFAULTS``); PEARL's
+    with oyster's settings for the family (``jcomps.methods.pearl.FAMILY_DEFAULTS``)."""
     entry = _registered(name)
+    family_name = family if isinstance(family, str) else family.name
+    if isinstance(entry.default, pearl.PEARLConfig):
+        return dataclasses.replace(entry.default, **pearl.FAMILY_DEFAULTS.get(family_name, {}))
     if not hasattr(entry.default, "ppo"):
         return entry.default
-    family_name = family if isinstance(family, str) else family.name
     rl = dataclasses.replace(ppo.family_config(family_name, entry.default.ppo), **entry.rl_step)
     config = dataclasses.replace(entry.default, ppo=rl)
     if isinstance(getattr(config, "meta", None), meta.MetaConfig):

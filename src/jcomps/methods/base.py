@@ -55,6 +55,8 @@ class Method(NamedTuple):
       env_steps_per_task: env steps every task costs beyond its counted iterations (PNC's compress phase, which
         runs after the threshold is met); a solved task's samples-to-success include them, an unsolved task's
         count (the budget's iterations) already does.
+      env_steps_before_task: env steps every task costs before its first iteration, solved or not (PEARL's
+        collection with z from the prior, oyster's ``num_initial_steps``); samples-to-success include them.
       act: how the method's policies act (``jcomps.acting.ActFn``); None: the Gaussian policies of the PPO-based
         methods (``networks.action_from_noise``).
       policy_for: ``(state, slot i32[], task, rng) -> policy``, the policy that acts on ``task``, the task learnt
@@ -73,6 +75,7 @@ class Method(NamedTuple):
     learn_task: Callable[[Any, Any], tuple[Any, TaskMetrics]]
     env_steps_per_iteration: Optional[int] = None
     env_steps_per_task: int = 0
+    env_steps_before_task: int = 0
     act: Optional[Callable] = None
     policy_for: Optional[Callable] = None
     adapt: Optional[Callable] = None

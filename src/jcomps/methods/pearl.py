@@ -68,8 +68,13 @@ class PEARLConfig:
     """Episodes of T_max steps collected per iteration (as the PPO methods, so iterations compare)."""
     budget: Optional[int] = None
     """Iterations per task N; None takes the family's paper value."""
-    num_updates: int = 64
-    """Gradient steps per iteration (a tuning axis; oyster makes 2,000 per 5 tasks' collection: docs/design.md)."""
+    num_updates: Optional[int] = None
+    """Gradient steps per iteration (a tuning axis: ``--grid num_updates=...``); None: ``updates_per_step`` times
+    the env steps the iteration collects. A CPU-sized setting is 64 (the default before issue 28: docs/design.md)."""
+    updates_per_step: float = 0.5
+    """Gradient steps per env step collected, when ``num_updates`` is None: oyster's ratio, 2,000 steps per round of
+    5 tasks × 800 transitions (``configs/default.py``; its point robot: 1,000 per 5 × 400; its Ant configs 4,000
+    per 5 × 1,000 = 0.8; its cheetah-vel 2,000 per 5 × 1,000 = 0.4: the families' defaults)."""
     minibatch_size: int = 256
     """Transitions per task slot in each gradient step's RL batch (oyster: batch_size 256)."""
     meta_batch: int = 4
@@ -80,11 +85,30 @@ class PEARLConfig:
     ``meta_batch / i`` of the slots at task i; 1 keeps at least a ``1 / meta_batch`` share of every step for it
     (the second reading of the paper's continual PEARL, docs/design.md)."""
     context_size: int = 64
-    """Transitions in a context (oyster: embedding_batch_size 64)."""
+    """Transitions in a context (oyster: embedding_batch_size 64; 100 in its cheetah-vel, 256 in its Ant configs)."""
+    context_source: str = "prior"
+    """Where contexts come from. ``prior``: oyster's encoder buffer, one per task slot, emptied at every iteration
+    and filled with that iteration's episodes collected with z from the prior (the first ``prior_fraction`` of the
+    episodes); the other episodes act with z from the posterior of contexts drawn from it and go to the replay
+    buffer only (oyster's ``num_extra_rl_steps_posterior``, ``add_to_enc_buffer=False``), and the iteration's
+    success rate is theirs. ``replay``: contexts drawn from the slot's whole replay buffer, every episode acting with
+    z from its posterior (jcomps before issue 28)."""
+    prior_fraction: float = 0.5
+    """With ``context_source="prior"``: the share of each iteration's ``num_trajectories`` episodes collected with
+    z from the prior (oyster: ``num_steps_prior`` 400 of 800 per round; 400 of 1,000 in its Ant and cheetah-vel
+    configs)."""
+    initial_steps: int = 2000
+    """Env steps collected with z from the prior into a task's replay buffer before its first iteration, rounded
+    up to whole episodes (oyster's ``num_initial_steps``: 2,000; 200 for its point robot); counted in the task's
+    samples (``Method.env_steps_before_task``); 0: none."""
     latent_size: int = 5
     """Size of the latent z (oyster: 5)."""
-    kl_weight: float = 0.1
-    """Weight of KL(q(z|c) ‖ N(0, I)) in the encoder's loss (oyster: kl_lambda 0.1)."""
+    kl_weight: float = 1.6
+    """Weight of the mean over a gradient step's task slots of KL(q(z|c) ‖ N(0, I)) against the critics' loss (a
+    mean over all rows). oyster sums the KL over its meta-batch of tasks and means the Bellman error over all their
+    rows, so per task the KL weighs ``kl_lambda`` × its meta-batch against that task's share of the Bellman loss:
+    0.1 × 16 = 1.6 (``configs/default.py``), 1.0 × 10 = 10 (``ant-goal.json``), 0.1 × 4 = 0.4 (``ant-dir.json``).
+    With this convention the weight does not depend on our ``meta_batch``."""
     hidden_sizes: tuple[int, ...] = (300, 300, 300)
     """Hidden layers of the policy and of each critic (oyster: net_size 300, three layers)."""
     encoder_hidden_sizes: tuple[int, ...] = (200, 200, 200)
@@ -117,9 +141,20 @@ class PEARLConfig:
 
     def __post_init__(self):
         positive_int = "an integer >= 1"
-        for name in ("num_trajectories", "num_updates", "minibatch_size", "meta_batch", "context_size",
-                     "latent_size", "buffer_size", "max_tasks"):
+        for name in ("num_trajectories", "minibatch_size", "meta_batch", "context_size", "latent_size",
+                     "buffer_size", "max_tasks"):
             check_field(getattr(self, name) >= 1, name, getattr(self, name), positive_int)
+        check_field(self.num_updates is None or self.num_updates >= 1, "num_updates", self.num_updates,
+                    "None (updates_per_step × env steps) or an integer >= 1")
+        check_field(self.updates_per_step > 0, "updates_per_step", self.updates_per_step, "a number > 0")
+        check_field(self.initial_steps >= 0, "initial_steps", self.initial_steps, "an integer >= 0 (0: none)")
+        check_field(self.context_source in CONTEXT_SOURCES, "context_source", self.context_source,
+                    " or ".join(repr(c) for c in CONTEXT_SOURCES))
+        if self.context_source == "prior":
+            check_field(0 < self.prior_fraction < 1 and 1 <= self.prior_episodes < self.num_trajectories,
+                        "prior_fraction", self.prior_fraction,
+                        f"a share in (0, 1) that leaves at least one of the num_trajectories = "
+                        f"{self.num_trajectories} episodes to each of the prior and the posterior")
         check_field(0 <= self.current_slots <= self.meta_batch, "current_slots", self.current_slots,
                     f"an integer in [0, meta_batch = {self.meta_batch}]")
         check_field(self.budget is None or self.budget >= 1, "budget", self.budget, "None or an integer >= 1")
@@ -138,12 +173,41 @@ class PEARLConfig:
         """Iterations per task for ``family``."""
         return family.default_budget if self.budget is None else self.budget
 
+    @property
+    def prior_episodes(self) -> int:
+        """Episodes of an iteration collected with z from the prior (``context_source="prior"``)."""
+        return int(round(self.prior_fraction * self.num_trajectories))
+
+    def updates_for(self, family: Family) -> int:
+        """Gradient steps per iteration on ``family``."""
+        if self.num_updates is not None:
+            return self.num_updates
+        return max(1, int(round(self.updates_per_step * self.num_trajectories * family.max_steps)))
+
+    def initial_episodes(self, family: Family) -> int:
+        """Episodes collected with the prior before a task's first iteration."""
+        return -(-self.initial_steps // family.max_steps)
+
+
+CONTEXT_SOURCES = ("prior", "replay")
+
+FAMILY_DEFAULTS: dict[str, dict[str, Any]] = {
+    "point_goal": {"initial_steps": 200},  # oyster's point-robot.json (its other fields are the defaults)
+    "cheetah_vel": {"context_size": 100, "updates_per_step": 0.4, "prior_fraction": 0.4},  # cheetah-vel.json
+    "ant_goal": {"context_size": 256, "updates_per_step": 0.8, "prior_fraction": 0.4, "kl_weight": 10.0},
+    "ant_dir": {"context_size": 256, "updates_per_step": 0.8, "prior_fraction": 0.4, "kl_weight": 0.4},
+}
+"""oyster's per-environment settings (``configs/*.json``) for the families that have a counterpart there, in our
+fields (``kl_weight`` = its ``kl_lambda`` × its ``meta_batch``); MetaWorld takes oyster's defaults."""
+
 
 class PEARLState(NamedTuple):
     """params: ActorCriticParams(policy={'net': the policy network's parameters, 'z': f32[latent] drawn from the
     posterior of the last task learnt}, value=()); q, target_q: the twin critics and their Polyak averages;
     encoder: the context encoder; policy_opt, critic_opt (critics and encoder), alpha_opt: Adam states;
-    log_alpha: f32[]; replay: a TransitionStore per task slot; rng; task_index: i32[], tasks learnt so far."""
+    log_alpha: f32[]; replay: a TransitionStore per task slot; contexts: the encoder buffers, a TransitionStore per
+    task slot holding its last iteration's prior-z episodes (``context_source="prior"``; zero rows with
+    ``replay``); rng; task_index: i32[], tasks learnt so far."""
 
     params: networks.ActorCriticParams
     q: Any
@@ -154,6 +218,7 @@ class PEARLState(NamedTuple):
     alpha_opt: Any
     log_alpha: jax.Array
     replay: buffers.TransitionStore
+    contexts: buffers.TransitionStore
     rng: jax.Array
     task_index: jax.Array
 
@@ -262,8 +327,8 @@ def _transitions(obs, action, reward, done, next_obs, mask):
 def critic_objective(config: PEARLConfig, nets: Networks, critic_loss_fn, q_encoder, policy_net, target_q, alpha,
                      rows: dict, mask: jax.Array, contexts: jax.Array, context_mask: jax.Array, key: jax.Array):
     """The critics' and encoder's loss on a meta-batch of M task slots: oyster's Σ_k mean (Q_k(s, a, z) − y)² (brax's
-    critic loss, ½ mean over rows and both critics, times 4, over the valid rows) plus ``kl_weight`` · Σ over the
-    slots of KL(q(z|c) ‖ N(0, I)). ``rows`` hold [M, n, ...] transitions with ``mask`` f32[M, n]; ``contexts``
+    critic loss, ½ mean over rows and both critics, times 4, over the valid rows) plus ``kl_weight`` · the mean over
+    the slots of KL(q(z|c) ‖ N(0, I)) (``PEARLConfig.kl_weight``: oyster's weight per task). ``rows`` hold [M, n, ...] transitions with ``mask`` f32[M, n]; ``contexts``
     f32[M, c, width] with ``context_mask``. z is drawn per slot by reparameterisation, so the encoder learns through
     Q(s, a, z) (brax's target is under stop_gradient) and the KL. Returns (loss, (critic loss, mean KL, z [M, latent]
     with its gradient stopped))."""
@@ -278,8 +343,8 @@ def critic_objective(config: PEARLConfig, nets: Networks, critic_loss_fn, q_enco
     rows_total = mask.size
     q_loss = 4.0 * critic_loss_fn(q, policy_net, None, target_q, alpha, trans, k_loss) * rows_total / jnp.maximum(
         jnp.sum(mask), 1.0)
-    kl = kl_to_prior(mu, var)
-    return q_loss + config.kl_weight * jnp.sum(kl), (q_loss, jnp.mean(kl), jax.lax.stop_gradient(z))
+    kl = jnp.mean(kl_to_prior(mu, var))
+    return q_loss + config.kl_weight * kl, (q_loss, kl, jax.lax.stop_gradient(z))
 
 
 critic_grad = jax.value_and_grad(critic_objective, argnums=3, has_aux=True)
@@ -319,8 +384,13 @@ def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optio
     nets = make_networks(config, family)
     act = make_act(nets)
     budget = config.budget_for(family)
+    num_updates = config.updates_for(family)
     batch = config.num_trajectories * family.max_steps
     capacity = buffers.transition_capacity(config.buffer_size, batch)
+    from_prior = config.context_source == "prior"
+    n_prior = config.prior_episodes if from_prior else 0
+    n_post = config.num_trajectories - n_prior
+    n_initial = config.initial_episodes(family)
     _, critic_loss_fn, _ = sac_losses.make_losses(nets.sac, reward_scaling=config.reward_scale,
                                                   discounting=config.discount, action_size=family.action_size)
     target_entropy = -0.5 * family.action_size  # brax's
@@ -333,22 +403,50 @@ def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optio
         encoder = nets.encoder.init(k_enc, jnp.zeros((1, nets.context_size), jnp.float32))
         log_alpha = jnp.log(jnp.asarray(config.alpha, jnp.float32))
         replay = buffers.transitions_init(config.max_tasks, capacity, family.obs_size, family.action_size)
+        contexts = buffers.transitions_init(config.max_tasks, n_prior * family.max_steps, family.obs_size,
+                                            family.action_size)
         return PEARLState(networks.ActorCriticParams(policy, ()), q, q, encoder, optimizer.init(policy["net"]),
-                          optimizer.init((q, encoder)), optimizer.init(log_alpha), log_alpha, replay, rng,
+                          optimizer.init((q, encoder)), optimizer.init(log_alpha), log_alpha, replay, contexts, rng,
                           jnp.int32(0))
 
-    def draw_z(encoder, replay, slot, rng, shape=()):
+    def context_store(state: PEARLState) -> buffers.TransitionStore:
+        """The store contexts are drawn from (``context_source``)."""
+        return state.contexts if from_prior else state.replay
+
+    def draw_z(encoder, store, slot, rng, shape=()):
+        """z from the posterior of one context of ``slot``, ``shape`` draws of it."""
         k_ctx, k_z = jax.random.split(rng)
-        context, mask = sample_context(config, replay, slot, k_ctx)
+        context, mask = sample_context(config, store, slot, k_ctx)
         mu, var = posterior(config, nets, encoder, context, mask)
         return mu + jnp.sqrt(var) * jax.random.normal(k_z, shape + mu.shape, jnp.float32)
+
+    def prior_z(rng, episodes):
+        return jax.random.normal(rng, (episodes, config.latent_size), jnp.float32)
+
+    def collect(state: PEARLState, task, slot, k_z, k_roll):
+        """One iteration's episodes and what they change: (state with its buffers written, the episodes that give
+        the iteration's success rate and return, whether every episode is finite)."""
+        if from_prior:  # oyster: prior-z episodes fill the emptied encoder buffer, posterior ones the replay only
+            (k_zp, k_ctx), (k_prior, k_post) = jax.random.split(k_z), jax.random.split(k_roll)
+            prior = acting.rollout(family, {**state.params.policy, "z": prior_z(k_zp, n_prior)}, task, k_prior,
+                                   n_prior, act=act)
+            contexts = buffers.transitions_add(buffers.transitions_clear(state.contexts, slot), slot, prior)
+            z = jax.vmap(lambda k: draw_z(state.encoder, contexts, slot, k))(jax.random.split(k_ctx, n_post))
+            post = acting.rollout(family, {**state.params.policy, "z": z}, task, k_post, n_post, act=act)
+            replay = buffers.transitions_add(buffers.transitions_add(state.replay, slot, prior), slot, post)
+            finite = all_finite((prior.obs, prior.reward, post.obs, post.reward))
+            return state._replace(replay=replay, contexts=contexts), post, finite
+        z = draw_z(state.encoder, state.replay, slot, k_z, (config.num_trajectories,))
+        traj = acting.rollout(family, {**state.params.policy, "z": z}, task, k_roll, config.num_trajectories, act=act)
+        finite = all_finite((traj.obs, traj.reward))
+        return state._replace(replay=buffers.transitions_add(state.replay, slot, traj)), traj, finite
 
     def gradient_step(state: PEARLState, key: jax.Array):
         k_slots, k_rows, k_ctx, k_critic, k_actor = jax.random.split(key, 5)
         slots = draw_slots(config, state.replay.count, state.task_index, k_slots)
         rows, mask = jax.vmap(lambda s, k: buffers.transitions_sample(state.replay, s, config.minibatch_size, k))(
             slots, jax.random.split(k_rows, config.meta_batch))
-        contexts, context_mask = jax.vmap(lambda s, k: sample_context(config, state.replay, s, k))(
+        contexts, context_mask = jax.vmap(lambda s, k: sample_context(config, context_store(state), s, k))(
             slots, jax.random.split(k_ctx, config.meta_batch))
         alpha = jnp.exp(state.log_alpha)
         policy_net = state.params.policy["net"]
@@ -392,16 +490,12 @@ def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optio
 
         def body(c: Carry):
             rng, k_z, k_roll, k_upd = jax.random.split(c.state.rng, 4)
-            s = c.state._replace(rng=rng)
-            z = draw_z(s.encoder, s.replay, slot, k_z, (config.num_trajectories,))
-            traj = acting.rollout(family, {**s.params.policy, "z": z}, task, k_roll, config.num_trajectories,
-                                  act=act)
+            s, traj, rollout_finite = collect(c.state._replace(rng=rng), task, slot, k_z, k_roll)
             success_rate = family.success_rate(traj.success, traj.valid)
             mean_return = jnp.mean(jnp.sum(traj.reward, axis=0))
             solved = success_rate >= family.success_threshold
             if report is not None:
                 report({"iteration": c.it + 1, "success_rate": success_rate, "mean_return": mean_return})
-            s = s._replace(replay=buffers.transitions_add(s.replay, slot, traj))
 
             def update(s):
                 def step(carry, key):
@@ -409,13 +503,12 @@ def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optio
                     s, terms, nonfinite = gradient_step(s, key)
                     return (s, bad | nonfinite), terms
 
-                (s, bad), terms = jax.lax.scan(step, (s, jnp.array(False)), jax.random.split(k_upd, config.num_updates))
+                (s, bad), terms = jax.lax.scan(step, (s, jnp.array(False)), jax.random.split(k_upd, num_updates))
                 return s, jnp.mean(terms, axis=0), bad.astype(jnp.float32)
 
             def skip(s):
                 return s, jnp.zeros((4,), jnp.float32), jnp.float32(0.0)
 
-            rollout_finite = all_finite((traj.obs, traj.reward))
             s, terms, bad = jax.lax.cond(solved | ~rollout_finite, skip, update, s)
             bad = jnp.maximum(bad, 1.0 - rollout_finite.astype(jnp.float32))
             row = ppo.IterationMetrics(mean_return, success_rate, terms[0], terms[1], terms[2], terms[3], bad,
@@ -423,16 +516,21 @@ def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optio
             metrics = jax.tree.map(lambda m, v: m.at[c.it].set(v), c.metrics, row)
             return Carry(s, c.it + 1, solved, metrics)
 
+        if n_initial:  # oyster's num_initial_steps, with z from the prior, before the task's first iteration
+            rng, k_z, k_roll = jax.random.split(state.rng, 3)
+            initial = acting.rollout(family, {**state.params.policy, "z": prior_z(k_z, n_initial)}, task, k_roll,
+                                     n_initial, act=act)
+            state = state._replace(replay=buffers.transitions_add(state.replay, slot, initial), rng=rng)
         out = jax.lax.while_loop(cond, body, Carry(state, jnp.int32(0), jnp.array(False), ppo.empty_metrics(budget)))
         s = out.state
         rng, k_z = jax.random.split(s.rng)
-        z = draw_z(s.encoder, s.replay, slot, k_z)
+        z = draw_z(s.encoder, context_store(s), slot, k_z)
         s = s._replace(params=s.params._replace(policy={**s.params.policy, "z": z}), rng=rng,
                        task_index=state.task_index + 1)
         return s, TaskMetrics(out.it, out.solved, out.metrics)
 
     def policy_for(state: PEARLState, slot, task, rng):  # z from the slot's data, not the task's
-        return {**state.params.policy, "z": draw_z(state.encoder, state.replay, slot, rng)}
+        return {**state.params.policy, "z": draw_z(state.encoder, context_store(state), slot, rng)}
 
     def adapt(state: PEARLState, task, rng, iterations: int):
         def one(carry, key):
@@ -454,4 +552,5 @@ def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optio
         _, (returns, success) = jax.lax.scan(one, (empty, jnp.array(False)), jax.random.split(rng, iterations))
         return returns, success
 
-    return Method("pearl", config, family, init, learn_task, act=act, policy_for=policy_for, adapt=adapt)
+    return Method("pearl", config, family, init, learn_task, env_steps_before_task=n_initial * family.max_steps,
+                  act=act, policy_for=policy_for, adapt=adapt)
