@@ -20,6 +20,11 @@ Per task, with budget N and C = ceil(``compress_fraction`` · N) compress iterat
   states) on E_s KL(π_active(·|s) ‖ π_KB(·|s)) + (λ/2) Σ γF*_{k−1} (θ_KB − θ*_{k−1})² (Schwarz et al., eq. 2);
 - then the online-EWC statistics: F_k, the diagonal Fisher of the KB policy on the last compress batch's states
   (actions drawn from the KB), normalised by its largest entry; F*_k = γF*_{k−1} + F_k; anchor θ*_k = θ_KB.
+
+The knowledge base's observation statistics (``kb_statistics="tasks"``) are an equal-weight pool of every compressed
+task's statistics (each task's from its compress batches), updated before each compress phase distils; the KB's
+first layer, the EWC anchor and the Fisher are re-expressed in the new statistics so that the KB computes the same
+function on the states behind the old ones (``renormalise``). docs/design.md ("Progress & Compress") has why.
 """
 
 from __future__ import annotations
@@ -37,6 +42,10 @@ from jcomps.envs.base import Family
 from jcomps.methods.base import Method, TaskMetrics
 from jcomps.numerics import all_finite, check_field, keep_if_finite
 from jcomps.progress import ProgressFn, with_fields
+
+
+KB_STATISTICS = ("tasks", "first_task")
+"""The choices of ``PNCConfig.kb_statistics``."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -58,6 +67,11 @@ class PNCConfig:
     """States (of the last compress batch) that estimate the diagonal Fisher of the knowledge base."""
     reset_active: bool = True
     """Re-initialise the active column and its adaptors at every new task (Schwarz et al.'s recommendation)."""
+    kb_statistics: str = "tasks"
+    """The knowledge base's observation statistics: ``tasks``, pooled over every compressed task with equal weight
+    (updated at each compress phase, the KB's first layer re-expressed to keep its function on earlier tasks);
+    ``first_task``, the active column's at the first compress phase, then kept (the behaviour before issue 28:
+    on MetaWorld, P-0's constant dimensions clip Hammer's observations at ±OBS_CLIP)."""
 
     TRACED: ClassVar[frozenset] = frozenset({"distill_learning_rate", "ewc_lambda", "ewc_gamma"})
     """Fields that may hold traced scalars (a hyperparameter-grid axis)."""
@@ -70,6 +84,8 @@ class PNCConfig:
         check_field(self.ewc_lambda >= 0, "ewc_lambda", self.ewc_lambda, "a number >= 0")
         check_field(0 <= self.ewc_gamma <= 1, "ewc_gamma", self.ewc_gamma, "a number in [0, 1]")
         check_field(self.fisher_states >= 1, "fisher_states", self.fisher_states, "an integer >= 1")
+        check_field(self.kb_statistics in KB_STATISTICS, "kb_statistics", self.kb_statistics,
+                    ", ".join(KB_STATISTICS))
 
 
 class PNCState(NamedTuple):
@@ -152,6 +168,53 @@ def diagonal_fisher(kb: dict, obs: jax.Array, valid: jax.Array, rng: jax.Array) 
     return jax.tree.map(lambda f: f / jnp.maximum(top, 1e-12), fisher)
 
 
+def task_statistics(obs: jax.Array, valid: jax.Array) -> networks.ObsNorm:
+    """The mean and variance of the valid rows of ``obs`` f32[..., obs_size] (``valid`` f32[...]); count: their
+    number."""
+    return networks.obs_norm_update(networks.obs_norm_init(obs.shape[-1]), obs, valid)
+
+
+def pool_statistics(pooled: networks.ObsNorm, task: networks.ObsNorm, weight) -> networks.ObsNorm:
+    """``pooled`` with one more task's statistics merged in at count ``weight``: when every task is merged at the
+    same weight, the mean and variance of the equal-weight mixture of the tasks' state distributions (a task solved
+    in 3 iterations counts as much as one that took 500). A pool with count 0 becomes ``task``'s statistics."""
+    total = pooled.count + weight
+    frac = weight / jnp.maximum(total, 1e-12)
+    delta = task.mean - pooled.mean
+    mean = pooled.mean + frac * delta
+    var = (1.0 - frac) * pooled.var + frac * task.var + frac * (1.0 - frac) * jnp.square(delta)
+    return networks.ObsNorm(mean, var, total)
+
+
+def renormalise(kb: dict, anchor: dict, fisher: dict, norm: networks.ObsNorm) -> tuple[dict, dict, dict]:
+    """The knowledge base with observation statistics ``norm``, and the EWC anchor and Fisher to match.
+
+    The first layer's pre-activation ``W^T (x − m)/s + b`` becomes ``W'^T (x − m')/s' + b'`` with, per observation
+    dimension d, ``W'_d = r_d W_d`` and ``b' = b + Σ_d W'_d (m'_d − m_d)/s'_d``: for r_d = s'_d/s_d this is the same
+    function of x (where neither normalisation clips). A dimension whose old standard deviation was at the floor
+    (constant in every state behind the old statistics) keeps r_d = 1: its old states all sit at m_d, where the
+    bias term alone keeps the function, and scaling its row by s'_d/OBS_STD_MIN would carry the floor's
+    amplification into the weights. The anchor θ* is re-expressed the same way (it is the same function too); the
+    diagonal Fisher of a scaled row is divided by r_d² (the gradient wrt W'_d is the old one over r_d, less a
+    bias-coupling term from the mean shift that a diagonal Fisher cannot hold; the biases' entries are kept).
+    A fresh knowledge base (count 0: the untrained initial network, identity statistics) just takes ``norm``."""
+    old = kb["obs_norm"]
+    seen = old.count > 0
+    old_std = jnp.maximum(jnp.sqrt(old.var), networks.OBS_STD_MIN)
+    new_std = jnp.maximum(jnp.sqrt(norm.var), networks.OBS_STD_MIN)
+    ratio = jnp.where(seen & (jnp.sqrt(old.var) > networks.OBS_STD_MIN), new_std / old_std, 1.0)
+    shift = jnp.where(seen, (norm.mean - old.mean) / new_std, 0.0)
+
+    def first_layer(tree):
+        layer = tree["mean"][0]
+        w = layer["w"] * ratio[:, None]
+        return {**tree, "mean": [{"w": w, "b": layer["b"] + shift @ w}, *tree["mean"][1:]]}
+
+    layer = fisher["mean"][0]
+    fisher = {**fisher, "mean": [{**layer, "w": layer["w"] / jnp.square(ratio)[:, None]}, *fisher["mean"][1:]]}
+    return {**first_layer(kb), "obs_norm": norm}, first_layer(anchor), fisher
+
+
 def compress(config: PNCConfig, family: Family, kb: dict, active: dict, task, fisher: dict, anchor: dict,
              rng: jax.Array, iterations: int, progress_fn: Optional[ProgressFn] = None):
     """The compress phase: ``iterations`` on-policy batches from the active column, each followed by
@@ -159,27 +222,37 @@ def compress(config: PNCConfig, family: Family, kb: dict, active: dict, task, fi
     update. Returns (kb, fisher F*_k, anchor θ*_k, KL f32[iterations]: on each iteration's first minibatch, before
     its steps, nonfinite f32[]: 1 if a step was skipped for a NaN or infinity).
 
-    The knowledge base's observation statistics are set once, from the active column's at its first compress
-    phase, and then kept: new statistics would change the function the EWC anchor and Fisher protect."""
+    The teacher is fixed through the phase, so its ``iterations`` batches are collected first; with
+    ``kb_statistics="tasks"`` their statistics join the knowledge base's pool (each task at the weight of one
+    compress phase's samples) and ``renormalise`` re-expresses the KB, the anchor and the Fisher before any
+    step, so the KB distils under the statistics it is evaluated with. ``first_task``: the KB takes the active
+    column's statistics at its first compress phase and keeps them."""
     pcfg = config.ppo
     optimizer = optax.adam(config.distill_learning_rate)
     acting_policy = with_kb(active, kb)  # the teacher, fixed through the phase (its laterals read this KB)
     grad_fn = jax.value_and_grad(distill_loss, argnums=1, has_aux=True)
-    fresh = kb["obs_norm"].count <= 0
-    kb = {**kb, "obs_norm": jax.tree.map(lambda a, k: jnp.where(fresh, a, k), active["obs_norm"], kb["obs_norm"])}
+    keys = jax.random.split(rng, iterations + 2)
+    k_roll, k_perm = jnp.moveaxis(jax.vmap(jax.random.split)(keys[:-2]), 1, 0)
 
-    def batch(key):
+    def collect(_, key):
         traj = acting.rollout(family, acting_policy, task, key, pcfg.num_trajectories)
-        obs = traj.obs.reshape((-1, traj.obs.shape[-1]))
-        mean, log_std = networks.policy_dist(acting_policy, obs)
-        return obs, traj.valid.reshape(-1), mean, log_std
+        return None, (traj.obs.reshape((-1, traj.obs.shape[-1])), traj.valid.reshape(-1))
+
+    _, (obs, valid) = jax.lax.scan(collect, None, k_roll)
+    if config.kb_statistics == "tasks":
+        weight = float(iterations * pcfg.num_trajectories * family.max_steps)
+        norm = pool_statistics(kb["obs_norm"], task_statistics(obs, valid), weight)
+        kb, anchor, fisher = renormalise(kb, anchor, fisher, norm)
+    else:
+        fresh = kb["obs_norm"].count <= 0
+        kb = {**kb, "obs_norm": jax.tree.map(lambda a, k: jnp.where(fresh, a, k), active["obs_norm"],
+                                             kb["obs_norm"])}
 
     def one_iteration(carry, xs):
         theta, opt_state, bad = carry
-        key, it = xs
-        k_roll, k_perm = jax.random.split(key)
-        obs, valid, t_mean, t_log_std = batch(k_roll)
-        indices = ppo.minibatch_indices(pcfg, obs.shape[0], k_perm)
+        obs, valid, key, it = xs
+        t_mean, t_log_std = networks.policy_dist(acting_policy, obs)
+        indices = ppo.minibatch_indices(pcfg, obs.shape[0], key)
 
         def step(carry, idx):
             theta, opt_state, bad = carry
@@ -193,13 +266,12 @@ def compress(config: PNCConfig, family: Family, kb: dict, active: dict, task, fi
         if progress_fn is not None:
             progress_fn({"compress_iteration": it + 1, "compress_iterations": jnp.int32(iterations),
                          "kl": kls[0]})
-        return (theta, opt_state, bad), (kls[0], obs, valid)
+        return (theta, opt_state, bad), kls[0]
 
     theta0 = trainable(kb)
-    keys = jax.random.split(rng, iterations + 2)
     init = (theta0, optimizer.init(theta0), jnp.array(False))
-    (theta, _, bad), (kls, obs, valid) = jax.lax.scan(one_iteration, init,
-                                                      (keys[:-2], jnp.arange(iterations, dtype=jnp.int32)))
+    (theta, _, bad), kls = jax.lax.scan(one_iteration, init,
+                                        (obs, valid, k_perm, jnp.arange(iterations, dtype=jnp.int32)))
     kb = {**kb, **theta}
     last_obs, last_valid = obs[-1], valid[-1]
     n = min(config.fisher_states, last_obs.shape[0])
