@@ -1,14 +1,15 @@
 """What one PEARL iteration costs: collection plus gradient steps, against raw vmapped ``env.step`` for the same env
 steps.
 
-One iteration of ``pearl.learn_task`` (budget 1, from a state whose replay buffer already holds one batch, so the
-gradient steps sample real data): a latent from the task's context, ``num_trajectories`` episodes of T_max steps
-with the tanh-Gaussian policy, the write to the replay buffer, and ``num_updates`` gradient steps (critics, encoder,
-actor, Polyak), against ``num_trajectories`` · T_max raw steps with precomputed actions in one jitted scan. The
+One iteration of ``pearl.learn_task`` with the family's default config (oyster's settings; budget 1, no initial
+prior-z collection, from a state whose replay buffer already holds one batch, so the gradient steps sample real
+data): ``num_trajectories`` episodes of T_max steps with the tanh-Gaussian policy (the prior-z share, then the
+posterior's), the writes to the buffers, and ``num_updates`` gradient steps (critics, encoder, actor, Polyak;
+``default``: the family's ratio of gradient steps to env steps), against ``num_trajectories`` · T_max raw steps with precomputed actions in one jitted scan. The
 rollout alone (PEARL's policy) is timed too, so the gradient steps' share is visible. One line per case, ``key=value``
 pairs ending in ``ratio=<PEARL iteration throughput / raw throughput>`` (median over alternating timed pairs).
 
-    python benchmarks/bench_pearl.py [--families cheetah_vel] [--num-updates 64 256] [--repeats 5]
+    python benchmarks/bench_pearl.py [--families cheetah_vel] [--num-updates 64 default] [--repeats 5]
 """
 
 from __future__ import annotations
@@ -25,10 +26,11 @@ from jcomps import acting, envs, methods
 from jcomps.methods import pearl
 
 
-def bench(name: str, num_updates: int, repeats: int) -> str:
+def bench(name: str, num_updates, repeats: int) -> str:
     family = envs.make(name)
     task = envs.task_at(family, 0)
-    config = dataclasses.replace(pearl.PEARLConfig(), budget=1, num_updates=num_updates, max_tasks=2)
+    config = dataclasses.replace(methods.default_config("pearl", family), budget=1, num_updates=num_updates,
+                                 max_tasks=2, initial_steps=0)
     method = methods.make("pearl", family, config)
     batch = config.num_trajectories
     steps = family.max_steps * batch
@@ -59,7 +61,7 @@ def bench(name: str, num_updates: int, repeats: int) -> str:
     t_it, t_raw, t_roll = map(np.asarray, (t_it, t_raw, t_roll))
     ratio = float(np.median(t_raw / t_it))
     it_s, raw_s, roll_s = float(np.median(t_it)), float(np.median(t_raw)), float(np.median(t_roll))
-    return (f"family={name} method=pearl num_updates={num_updates} meta_batch={config.meta_batch} "
+    return (f"family={name} method=pearl num_updates={config.updates_for(family)} meta_batch={config.meta_batch} "
             f"minibatch={config.minibatch_size} steps={steps} raw_steps_per_s={steps / raw_s:.0f} "
             f"pearl_steps_per_s={steps / it_s:.0f} iteration_s={it_s:.3f} rollout_s={roll_s:.3f} "
             f"update_s={max(it_s - roll_s, 0.0):.3f} update_share={max(it_s - roll_s, 0.0) / it_s:.3f} "
@@ -69,7 +71,8 @@ def bench(name: str, num_updates: int, repeats: int) -> str:
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--families", nargs="+", default=["cheetah_vel"], choices=envs.FAMILIES)
-    parser.add_argument("--num-updates", nargs="+", type=int, default=[64])
+    parser.add_argument("--num-updates", nargs="+", type=lambda v: None if v == "default" else int(v),
+                        default=[64, None], help="gradient steps per iteration; 'default': the family's ratio")
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args()
     print(f"backend={jax.default_backend()} devices={jax.device_count()}", flush=True)

@@ -118,6 +118,7 @@ UNRESUMABLE_BEFORE = {
     "meta.value_init": "CoMPS's meta step now keeps one value network per task and starts a new task's from the RL "
                        "step's critic (issue 27)",
     "context_source": "PEARL now keeps oyster's encoder buffers and weighs its KL per task (issue 28)",
+    "kb_statistics": "PNC's knowledge base now pools its observation statistics over tasks (issue 28)",
 }
 
 
