@@ -149,11 +149,19 @@ class Console:
         elif kind == "chunk":
             entry, start, stop = event["entry"], event["start"], event["stop"]
             _report_chunk(self.log, entry, event["metrics"], start, stop, event["num_tasks"])
+            learnt = event.get("learnt_tasks")
+            if learnt is not None and np.any(learnt.valid):
+                self.log(f"[{entry}] after task {stop}/{event['num_tasks']}: {learnt_text(event['per_task'], learnt)}")
             _check_finite(self.log, entry, event["seeds"], event["metrics"].task.per_iteration.nonfinite, start)
             if self.tensorboard:
                 if entry not in self.writers:
                     self.writers[entry] = _tensorboard_writer_class()(os.path.join(self.out, "tensorboard", entry))
                 _log_tensorboard(self.writers[entry], event["per_task"], start, stop)
+                if learnt is not None and np.any(learnt.valid):
+                    now, then = _learnt_means(event["per_task"], learnt)
+                    self.writers[entry].add_scalar("learnt_tasks/average_performance", now, stop)
+                    self.writers[entry].add_scalar("learnt_tasks/forgetting", then - now, stop)
+                    self.writers[entry].flush()
         elif kind == "done":
             self.progress.pop(name, None)
             self.log(f"[{name}] done in {_clock(event['seconds'])}")
@@ -177,6 +185,23 @@ def _report_chunk(log, name, metrics, start, stop, num_tasks):
             f"(mean {its[:, t].mean():.1f})")
         if meta is not None:
             log(f"[{name}] task {start + t + 1}/{num_tasks} meta phase: {meta_health_text(meta, t, start + t)}")
+
+
+def learnt_text(per_task, learnt) -> str:
+    """One line on the evaluation of the tasks learnt so far (``learnt``: a ``continual.Evaluation`` [seeds,
+    num_tasks]), against the same tasks' evaluations right after each was learnt (``per_task.learnt``): mean
+    success over seeds and tasks then and now, and their difference (forgetting)."""
+    now, then = _learnt_means(per_task, learnt)
+    n = int(np.asarray(learnt.valid).sum(1).max())
+    return (f"success on the {n} task{'s' if n > 1 else ''} learnt {now:.2f}, right after learning "
+            f"{'each' if n > 1 else 'it'} {then:.2f} (forgetting {then - now:+.2f})")
+
+
+def _learnt_means(per_task, learnt) -> tuple[float, float]:
+    """Mean success over seeds and the tasks evaluated in ``learnt``: now, and right after each was learnt."""
+    valid = np.asarray(learnt.valid)
+    return (float(np.asarray(learnt.success_rate)[valid].mean()),
+            float(np.asarray(per_task.learnt.success_rate)[valid].mean()))
 
 
 def meta_health_text(meta, t: int, slot: int) -> str:

@@ -2,6 +2,7 @@
 
 import chex
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -69,3 +70,40 @@ def test_unknown_method_and_wrong_config():
         methods.make("nope", family)
     with pytest.raises(TypeError, match="PPOTLConfig"):
         methods.make("ppo_tl", family, ppo.PPOConfig())
+
+
+def test_a_method_that_never_changes_its_policy_forgets_nothing(family):
+    """The learnt tasks' evaluations (right after each task in ``run_chunk``, at the end in ``learnt_tasks``) use
+    the same episodes of each task, so a method whose learning leaves the policy as it was scores exactly the same
+    both times: zero forgetting, not zero on average."""
+    from jcomps import continual_metrics
+
+    method = methods.make("ppo_tl", family, SMALL)
+    state = method.init(jax.random.PRNGKey(0))
+    seq = envs.sequence(family, num_tasks=3)
+    shapes = jax.eval_shape(method.learn_task, state, envs.task_at(family, 0))[1]
+
+    def frozen(state, task):  # counts the task and learns nothing
+        del task
+        return state._replace(task_index=state.task_index + 1), jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype),
+                                                                             shapes)
+
+    method = method._replace(learn_task=frozen)
+    config = continual.EvalConfig(backward_tasks=1, learnt_episodes=3)
+    key = jax.random.PRNGKey(7)
+    end, chunk = jax.jit(lambda s: continual.run_chunk(method, config, s, seq, 0, 3, key))(state)
+    evaluate = jax.jit(lambda s, n: continual.learnt_tasks(method, config, s, seq, n, key))
+    final = evaluate(end, 3)
+    chex.assert_shape(final.mean_return, (3,))
+    np.testing.assert_array_equal(np.asarray(final.valid), True)
+    np.testing.assert_array_equal(np.asarray(final.mean_return), np.asarray(chunk.learnt.mean_return))
+    assert len(set(np.asarray(final.mean_return).tolist())) == 3  # three tasks' own episodes, not one stream
+    f = continual_metrics.forgetting(chunk.learnt.success_rate, final.success_rate, final.valid & chunk.learnt.valid)
+    np.testing.assert_array_equal(f, 0.0)
+    # The backward evaluation of task i − 1 after task i has its own episodes; its success rate comes with it.
+    chex.assert_shape(chunk.backward_success, (3, 1))
+    # Tasks not yet learnt are skipped: zeros, not valid.
+    two = evaluate(end, 2)
+    np.testing.assert_array_equal(np.asarray(two.valid), [True, True, False])
+    np.testing.assert_array_equal(np.asarray(two.mean_return)[:2], np.asarray(final.mean_return)[:2])
+    assert float(two.mean_return[2]) == 0.0 and float(two.success_rate[2]) == 0.0

@@ -4,7 +4,8 @@ Seeds are a ``vmap`` axis: ``run_seeds`` runs S independent seeds (each with its
 sequences differ) in one compiled program. ``run_chunk`` is the building block of the experiment runner: it
 learns ``chunk`` tasks from a given position of the sequence and evaluates as it goes (backward transfer), so
 a long sequence runs as a host loop over chunks with a checkpoint between them, every chunk through the same
-compiled program.
+compiled program. ``learnt_tasks`` evaluates the policy on every task learnt so far (forgetting, average
+performance), with the same episodes of each task as right after it was learnt.
 """
 
 from __future__ import annotations
@@ -93,6 +94,10 @@ def run_seeds(method: Method, tasks, rngs: jax.Array, progress_fn: Optional[Prog
     return jax.jit(run)(tasks, rngs, jnp.arange(rngs.shape[0], dtype=jnp.int32))
 
 
+LEARNT_EVAL = ("chunk", "end")
+"""When ``learnt_tasks`` runs (``EvalConfig.learnt_eval``): after every chunk, or after the last task only."""
+
+
 @dataclasses.dataclass(frozen=True)
 class EvalConfig:
     """Evaluations made while a sequence runs (they never change what the method learns)."""
@@ -105,17 +110,45 @@ class EvalConfig:
     heldout_budget: int = 50
     """Cap of the held-out iterations-to-success (the paper's measure, on tasks never trained on): the same
     adaptation runs this many iterations (at least ``heldout_iterations`` + 1); 0: not measured."""
+    learnt_eval: str = "chunk"
+    """When the policy is evaluated on every task learnt so far (success rate and return: forgetting, average
+    performance): chunk (after every chunk of tasks) or end (after the last task only). Each task is also
+    evaluated right after it is learnt, with the same episodes."""
+    learnt_episodes: int = 0
+    """Fresh episodes of every evaluation of a learnt task (right after it is learnt and by learnt_eval); 0: the
+    method's episodes per iteration (num_trajectories)."""
 
     def __post_init__(self):
         check_field(self.backward_tasks >= 0, "backward_tasks", self.backward_tasks, "an integer >= 0")
         check_field(self.heldout_iterations >= 0, "heldout_iterations", self.heldout_iterations,
                         "an integer >= 0")
         check_field(self.heldout_budget >= 0, "heldout_budget", self.heldout_budget, "an integer >= 0 (0: off)")
+        check_field(self.learnt_eval in LEARNT_EVAL, "learnt_eval", self.learnt_eval, ", ".join(LEARNT_EVAL))
+        check_field(self.learnt_episodes >= 0, "learnt_episodes", self.learnt_episodes,
+                    "an integer >= 0 (0: the method's num_trajectories)")
 
     @property
     def heldout_run(self) -> int:
         """Iterations of each held-out adaptation run."""
         return max(self.heldout_iterations + 1, self.heldout_budget)
+
+    def episodes(self, method: Method) -> int:
+        """Episodes of each evaluation of a learnt task of ``method``."""
+        return self.learnt_episodes or base.collection(method.config).num_trajectories
+
+
+class Evaluation(NamedTuple):
+    """Fresh episodes of a policy on tasks (leading axes where used).
+
+    Attributes:
+      mean_return: f32, mean episode return.
+      success_rate: f32, the family's success rate of the episodes (``Family.success_rate``).
+      valid: bool, False where nothing was evaluated (then both values are 0).
+    """
+
+    mean_return: jax.Array
+    success_rate: jax.Array
+    valid: jax.Array
 
 
 class ChunkMetrics(NamedTuple):
@@ -126,6 +159,9 @@ class ChunkMetrics(NamedTuple):
       backward_returns: f32[chunk, backward_tasks], mean episode return of the policy after task i on task
         i − 1 − d (d = 0 … backward_tasks − 1), with ``num_trajectories`` fresh episodes.
       backward_valid: bool[chunk, backward_tasks], False where i − 1 − d < 0 or the position is past the end.
+      backward_success: f32[chunk, backward_tasks], the success rate of the same episodes.
+      learnt: Evaluation [chunk], the policy right after task i on task i itself, with the episodes of task i
+        that every ``learnt_tasks`` evaluation uses (the start of its forgetting).
 
     Positions past the end of the sequence report zeros.
     """
@@ -133,12 +169,32 @@ class ChunkMetrics(NamedTuple):
     task: TaskMetrics
     backward_returns: jax.Array
     backward_valid: jax.Array
+    backward_success: Optional[jax.Array] = None
+    learnt: Optional[Evaluation] = None
 
 
-def _mean_return(method: Method, policy, task, rng):
-    traj = acting.rollout(method.family, policy, task, rng, base.collection(method.config).num_trajectories,
-                          act=base.act_fn(method))
-    return jnp.mean(jnp.sum(traj.reward, axis=0))
+# The evaluations of a learnt task j descend from ``fold_in(eval_key, LEARNT_SALT)`` folded with j, apart from the
+# backward-transfer keys ``fold_in(fold_in(eval_key, i), d)`` (i a task position, far below the salt).
+LEARNT_SALT = 0x6C726E74  # "lrnt"
+
+
+def learnt_key(eval_key, j):
+    """The key of every evaluation of the task at position ``j`` as a learnt task: right after it is learnt and
+    at every ``learnt_tasks`` evaluation. The same episodes each time (common random numbers), so a policy that
+    does not change scores the same and its forgetting is exactly 0."""
+    return jax.random.fold_in(jax.random.fold_in(eval_key, LEARNT_SALT), j)
+
+
+def _evaluate(method: Method, state, slot, task, key, episodes: int):
+    """(mean return, success rate) of ``episodes`` fresh episodes on ``task`` (learnt in ``slot``) of the policy
+    ``base.policy_for`` gives; the rollout draws from ``key``, the policy (MAML+TL's adaptation) from its fold 7."""
+    policy = base.policy_for(method, state, slot, task, jax.random.fold_in(key, 7))
+    traj = acting.rollout(method.family, policy, task, key, episodes, act=base.act_fn(method))
+    return jnp.mean(jnp.sum(traj.reward, axis=0)), method.family.success_rate(traj.success, traj.valid)
+
+
+def _task_at(sequence, i):
+    return jax.tree.map(lambda x: jax.lax.dynamic_index_in_dim(x, i, keepdims=False), sequence)
 
 
 def run_chunk(method: Method, eval_config: EvalConfig, state, sequence, start, chunk: int, eval_key):
@@ -153,21 +209,22 @@ def run_chunk(method: Method, eval_config: EvalConfig, state, sequence, start, c
     check_capacity(method, num_tasks)
     learn = jax.jit(method.learn_task)
     k = eval_config.backward_tasks
-
-    def task_at(i):
-        return jax.tree.map(lambda x: jax.lax.dynamic_index_in_dim(x, i, keepdims=False), sequence)
+    episodes = eval_config.episodes(method)
+    trajectories = base.collection(method.config).num_trajectories
 
     def do(state, i):
-        new_state, metrics = learn(state, task_at(i))
+        new_state, metrics = learn(state, _task_at(sequence, i))
         prev = i - 1 - jnp.arange(k)
         keys = jax.vmap(lambda d: jax.random.fold_in(jax.random.fold_in(eval_key, i), d))(jnp.arange(k))
+
         def back(j, key):
             j = jnp.maximum(j, 0)  # the rollout keeps ``key`` (the same stream as before policy_for existed)
-            policy = base.policy_for(method, new_state, j, task_at(j), jax.random.fold_in(key, 7))
-            return _mean_return(method, policy, task_at(j), key)
+            return _evaluate(method, new_state, j, _task_at(sequence, j), key, trajectories)
 
-        returns = jax.vmap(back)(prev, keys)
-        return new_state, ChunkMetrics(metrics, returns, prev >= 0)
+        returns, success = jax.vmap(back)(prev, keys)
+        now = _evaluate(method, new_state, i, _task_at(sequence, i), learnt_key(eval_key, i), episodes)
+        learnt = Evaluation(*now, jnp.bool_(True))
+        return new_state, ChunkMetrics(metrics, returns, prev >= 0, success, learnt)
 
     def body(state, c):
         i = start + c
@@ -176,6 +233,26 @@ def run_chunk(method: Method, eval_config: EvalConfig, state, sequence, start, c
         return jax.lax.cond(i < num_tasks, do, skip, state, i)
 
     return jax.lax.scan(body, state, jnp.arange(chunk, dtype=jnp.int32))
+
+
+def learnt_tasks(method: Method, eval_config: EvalConfig, state, sequence, learnt, eval_key) -> Evaluation:
+    """The policy of ``state`` on every task of ``sequence`` (a task pytree [num_tasks]) learnt so far, the
+    positions below ``learnt`` (i32[], must not be batched): Evaluation [num_tasks], with the episodes of
+    ``learnt_key(eval_key, j)`` (those of ``ChunkMetrics.learnt``); the other positions are skipped (a
+    ``lax.cond``: the cost grows with the tasks learnt) and report zeros, valid False. Nothing is kept."""
+    num_tasks = jax.tree.leaves(sequence)[0].shape[0]
+    episodes = eval_config.episodes(method)
+
+    def one(j):
+        def do(_):
+            task = _task_at(sequence, j)
+            return Evaluation(*_evaluate(method, state, j, task, learnt_key(eval_key, j), episodes), jnp.bool_(True))
+
+        shapes = jax.eval_shape(do, None)
+        skip = lambda _: jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)  # noqa: E731
+        return jax.lax.cond(j < learnt, do, skip, None)
+
+    return jax.lax.map(one, jnp.arange(num_tasks, dtype=jnp.int32))
 
 
 class HeldoutMetrics(NamedTuple):

@@ -132,16 +132,24 @@ def _fill_added_fields(stored: dict, asked: dict, default: dict, prefix: str) ->
         if not isinstance(default, dict) or key not in default:
             continue
         if key not in stored:
-            path = prefix.split(".", 2)[-1] + key if prefix.startswith("methods.") else prefix + key
-            if path in UNRESUMABLE_BEFORE:
+            in_method = prefix.startswith("methods.")
+            path = prefix.split(".", 2)[-1] + key if in_method else prefix + key
+            why = (UNRESUMABLE_BEFORE if in_method else UNRESUMABLE_EVAL_BEFORE).get(path)
+            if why is not None:
                 raise RunError(f"--resume: this run was made before {prefix}{key} existed and cannot be resumed by "
-                               f"this version ({UNRESUMABLE_BEFORE[path]}); start it anew with another --out")
+                               f"this version ({why}); start it anew with another --out")
             if value == default[key]:
                 stored[key] = value
                 filled.append(prefix + key)
         elif isinstance(stored[key], dict) and isinstance(value, dict):
             filled += _fill_added_fields(stored[key], value, default[key], f"{prefix}{key}.")
     return filled
+
+
+# The same for evaluation fields (``eval.<field>``), whose addition changed the metrics that checkpoints hold.
+UNRESUMABLE_EVAL_BEFORE = dict.fromkeys(
+    ("eval.learnt_eval", "eval.learnt_episodes"),
+    "its checkpoints lack the evaluations of the learnt tasks behind forgetting and average performance (issue 28)")
 
 
 def _write_json(path, data):
@@ -164,6 +172,9 @@ def open_run_dir(out: str, description: dict, resume: bool) -> None:
             if isinstance(stored.get("methods", {}).get(name), dict):
                 default = _jsonable(methods.default_config(name, description["run"]["family"]))
                 filled += _fill_added_fields(stored["methods"][name], config, default, f"methods.{name}.")
+        if isinstance(stored.get("eval"), dict) and isinstance(description.get("eval"), dict):
+            filled += _fill_added_fields(stored["eval"], description["eval"], _jsonable(continual.EvalConfig()),
+                                         "eval.")
         diff = _differences(stored, description)
         diff = [d + f" (float rounding depends on it: resume with --devices {stored['devices']})"
                 if d.startswith("devices:") else d for d in diff]
@@ -216,12 +227,14 @@ def method_keys(seeds: list[int]) -> jax.Array:
 
 
 def eval_keys(seeds: list[int], purpose: int) -> jax.Array:
-    """Each seed's key for the evaluation ``purpose`` (1: backward transfer; 1000 + c: held-out after chunk c)."""
+    """Each seed's key for the evaluation ``purpose`` (1: backward transfer and, folded with
+    ``continual.LEARNT_SALT``, the learnt tasks' evaluations; 1000 + c: held-out after chunk c)."""
     return _salted(seeds, EVAL_SALT, purpose)
 
 
 class MethodProgram:
-    """The compiled programs of one method: init, one chunk of tasks, held-out adaptation; members sharded.
+    """The compiled programs of one method: init, one chunk of tasks, the evaluations after a chunk (``heldout``:
+    held-out adaptation and the learnt tasks' evaluation, ``continual.learnt_tasks``); members sharded.
 
     ``make(hparams, progress_fn)`` makes the method from one member's dict of traced hyperparameters (empty
     without traced grid axes) and progress hook; it runs inside each traced function, so every member learns, is
@@ -249,10 +262,14 @@ class MethodProgram:
 
             return jax.vmap(fn)(states, sequences, eval_keys, seed_index, hparams)
 
-        def heldout(states, tasks, keys, hparams):
+        def heldout(states, tasks, keys, sequences, learnt, eval_keys, hparams):
             self.traces["heldout"] += 1
-            return jax.vmap(lambda s, k, h: continual.heldout_adaptation(make(h, None), eval_config, s, tasks, k))(
-                states, keys, hparams)
+            def fn(s, k, q, e, h):
+                method = make(h, None)
+                return (continual.heldout_adaptation(method, eval_config, s, tasks, k),
+                        continual.learnt_tasks(method, eval_config, s, q, learnt, e))
+
+            return jax.vmap(fn)(states, keys, sequences, eval_keys, hparams)
 
         def init(rngs, hparams):
             self.traces["init"] += 1
@@ -265,7 +282,7 @@ class MethodProgram:
         # Initialisation runs on one device (member by member, see continual.init_seeds), then is split over them.
         self._init = jax.jit(init)
         self._run_chunk = shard(run_chunk, (seed, seed, P(), seed, seed, seed))
-        self._heldout = shard(heldout, (seed, P(), seed, seed))
+        self._heldout = shard(heldout, (seed, P(), seed, seed, P(), seed, seed))
         self.sharding = jax.sharding.NamedSharding(mesh, seed)
 
     def _receive(self, metrics: dict):
@@ -280,8 +297,10 @@ class MethodProgram:
     def run_chunk(self, states, sequences, start, eval_keys, seed_index, hparams: Optional[dict] = None):
         return self._run_chunk(states, sequences, start, eval_keys, seed_index, hparams or {})
 
-    def heldout(self, states, tasks, keys, hparams: Optional[dict] = None):
-        return self._heldout(states, tasks, keys, hparams or {})
+    def heldout(self, states, tasks, keys, sequences, learnt, eval_keys, hparams: Optional[dict] = None):
+        """(HeldoutMetrics on ``tasks`` with ``keys``, Evaluation [members, num_tasks] of the ``learnt`` (i32[]) first
+        tasks of ``sequences`` with ``eval_keys``, the backward-transfer keys)."""
+        return self._heldout(states, tasks, keys, sequences, learnt, eval_keys, hparams or {})
 
     def put(self, tree):
         """Places host arrays with a leading member axis on the devices, split along that axis."""
@@ -330,8 +349,9 @@ ProgressReceiver = Callable[[dict], None]
 - ``compress_iteration``: the same for a compress phase of ``pnc`` (``compress_iteration``, ``compress_iterations``,
   ``kl``);
 - ``chunk``: a chunk of tasks is done, per results entry (``program``, ``entry``, ``start``, ``stop``,
-  ``num_tasks``, ``seeds``, ``metrics``: its members' ChunkMetrics, ``per_task``: every task's so far), after
-  the checkpoint is written;
+  ``num_tasks``, ``seeds``, ``metrics``: its members' ChunkMetrics, ``per_task``: every task's so far,
+  ``learnt_tasks``: the Evaluation [members, num_tasks] of every task learnt, valid False where not evaluated),
+  after the checkpoint is written;
 - ``done``: the program finished (``program``, ``seconds``); ``skipped``: it had finished before (``program``).
 """
 
@@ -402,8 +422,10 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
     states = program.init(method_keys(member_seed), hparams_host)
     chunk_shapes = jax.eval_shape(program.run_chunk, states, sequences, jnp.int32(0), backward_keys, seed_index,
                                   hparams)[1]
-    heldout_shapes = jax.eval_shape(program.heldout, states, heldout_tasks, backward_keys, hparams)
-    # Host copies of every metric of the sequence, filled chunk by chunk: [members, num_tasks, ...].
+    heldout_shapes = jax.eval_shape(program.heldout, states, heldout_tasks, backward_keys, sequences, jnp.int32(0),
+                                    backward_keys, hparams)
+    # Host copies of every metric of the sequence, filled chunk by chunk: [members, num_tasks, ...]; those measured
+    # at the start and after every chunk (held-out adaptation, learnt tasks): [members, num_chunks + 1, ...].
     per_task = jax.tree.map(lambda x: np.zeros((x.shape[0], run.num_tasks) + x.shape[2:], x.dtype), chunk_shapes)
     heldout = jax.tree.map(lambda x: np.zeros((x.shape[0], num_chunks + 1) + x.shape[1:], x.dtype), heldout_shapes)
 
@@ -431,9 +453,11 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
         raws_ = {}
         for p, point in enumerate(points):
             task = jax.tree.map(lambda x: np.asarray(x[slices[p]][:, :upto]), per_task)
-            held = jax.tree.map(lambda x: np.asarray(x[slices[p]][:, :measured]), heldout)
+            held = jax.tree.map(lambda x: np.asarray(x[slices[p]][:, :measured]), heldout[0])
+            learnt = jax.tree.map(lambda x: np.asarray(x[slices[p]][:, :measured, :upto]), heldout[1])
             raws_[point.key] = results.RawResults(task.task, task.backward_returns, task.backward_valid, held,
-                                                  after_tasks[:measured], float(seconds_), int(devices))
+                                                  after_tasks[:measured], float(seconds_), int(devices),
+                                                  task.backward_success, task.learnt, learnt)
         return raws_
 
     if 0 < next_chunk < num_chunks:  # a run stopped by older code has no partial results yet
@@ -446,9 +470,16 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
                  "devices": devices, "budget": methods.collection(spec.config).budget_for(family),
                  "chunk": program.chunk, "start_task": next_chunk * program.chunk, "members": member_names})
     start_time = time.time()
+
+    def evaluate(states, column: int, learnt: int, keys):
+        """The evaluations of ``states`` (``learnt``: the tasks to evaluate) into column ``column`` of ``heldout``."""
+        out_h = program.heldout(states, heldout_tasks, program.put(keys), sequences, jnp.int32(learnt), backward_keys,
+                                hparams)
+        jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), column), np.asarray(src)), heldout, out_h)
+        return out_h
+
     if next_chunk == 0:
-        out_h = program.heldout(states, heldout_tasks, program.put(eval_keys(member_seed, 1000)), hparams)
-        jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), 0), np.asarray(src)), heldout, out_h)
+        evaluate(states, 0, 0, eval_keys(member_seed, 1000))
 
     def receive(metrics: dict):
         kind = next((k for k in ("iteration", "meta_step", "compress_iteration") if k in metrics), "meta_step")
@@ -466,8 +497,9 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
             stop = min(start + program.chunk, run.num_tasks)
             jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), slice(start, stop)), src[:, :stop - start]),
                          per_task, metrics)
-            out_h = program.heldout(states, heldout_tasks, program.put(eval_keys(member_seed, 1001 + c)), hparams)
-            jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), c + 1), np.asarray(src)), heldout, out_h)
+            # The learnt tasks after every chunk, or (learnt_eval=end) after the last one only.
+            learnt = stop if eval_config.learnt_eval == "chunk" or stop == run.num_tasks else 0
+            _, learnt_now = evaluate(states, c + 1, learnt, eval_keys(member_seed, 1001 + c))
             elapsed = seconds + time.time() - start_time
             checkpoints.save(c + 1, record(states, per_task, heldout, c + 1, elapsed))
             if c + 1 < num_chunks:  # what a report of the unfinished run shows (report.py --partial)
@@ -477,7 +509,8 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
                 progress_fn({"event": "chunk", "program": name, "entry": point.key, "start": start, "stop": stop,
                              "num_tasks": run.num_tasks, "seeds": seeds,
                              "metrics": jax.tree.map(lambda x: np.asarray(x)[slices[p]], metrics),
-                             "per_task": jax.tree.map(lambda x: x[slices[p]], per_task)})
+                             "per_task": jax.tree.map(lambda x: x[slices[p]], per_task),
+                             "learnt_tasks": jax.tree.map(lambda x: np.asarray(x)[slices[p]], learnt_now)})
             chunks_run += 1
             if stop_after_chunks is not None and chunks_run >= stop_after_chunks and c + 1 < num_chunks:
                 return None

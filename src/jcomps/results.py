@@ -16,7 +16,7 @@ import jax
 import numpy as np
 
 from jcomps.checkpoint import RunError
-from jcomps.continual import HeldoutMetrics
+from jcomps.continual import Evaluation, HeldoutMetrics
 from jcomps.methods.base import TaskMetrics
 
 
@@ -30,6 +30,13 @@ class RawResults(NamedTuple):
       heldout: HeldoutMetrics with a leading [S, P] (curves [S, P, H, iterations + 1]; iterations [S, P, H]).
       heldout_after_tasks: i64[P], tasks learnt before each held-out measurement.
       seconds: wall time of the entry's program; devices: devices it ran on.
+      backward_success: f32[S, N, k], the success rate of the backward-transfer episodes.
+      learnt: Evaluation [S, N], the policy right after task i on task i (``continual.ChunkMetrics.learnt``).
+      learnt_tasks: Evaluation [S, P, N], the policy of each held-out measurement on every task learnt by then
+        (``continual.learnt_tasks``; valid False where not evaluated: tasks not yet learnt, and with
+        ``learnt_eval=end`` every measurement before the last task).
+
+    The last three are None in runs made before they existed (issue 28).
     """
 
     task: TaskMetrics
@@ -39,6 +46,9 @@ class RawResults(NamedTuple):
     heldout_after_tasks: np.ndarray
     seconds: float
     devices: int
+    backward_success: Optional[np.ndarray] = None
+    learnt: Optional[Evaluation] = None
+    learnt_tasks: Optional[Evaluation] = None
 
 
 def _leaves(prefix: str, x):
@@ -59,7 +69,7 @@ def _build(cls, prefix: str, arrays: dict):
         args = [a for a in typing.get_args(tp) if a is not type(None)]
         if typing.get_origin(tp) is typing.Union and len(args) == 1:  # Optional[X]: present if any key is
             tp = args[0]
-            if not any(key.startswith(f"{prefix}{name}.") for key in arrays):
+            if not any(key == f"{prefix}{name}" or key.startswith(f"{prefix}{name}.") for key in arrays):
                 kwargs[name] = None
                 continue
         if isinstance(tp, type) and hasattr(tp, "_fields"):
@@ -153,9 +163,12 @@ def truncate(raw: RawResults, num_tasks: int) -> RawResults:
     if not 1 <= num_tasks <= tasks_done(raw):
         raise ValueError(f"num_tasks must be in [1, {tasks_done(raw)}], got {num_tasks}")
     keep = raw.heldout_after_tasks <= num_tasks
-    return raw._replace(task=jax.tree.map(lambda x: x[:, :num_tasks], raw.task),  # None (no meta) stays None
-                        backward_returns=raw.backward_returns[:, :num_tasks],
-                        backward_valid=raw.backward_valid[:, :num_tasks],
+    first = lambda x: x[:, :num_tasks]  # noqa: E731 - None (no meta, an older run) stays None
+    return raw._replace(task=jax.tree.map(first, raw.task), backward_returns=first(raw.backward_returns),
+                        backward_valid=first(raw.backward_valid),
                         heldout=jax.tree.map(lambda x: x[:, keep], raw.heldout),
-                        heldout_after_tasks=raw.heldout_after_tasks[keep])
+                        heldout_after_tasks=raw.heldout_after_tasks[keep],
+                        backward_success=jax.tree.map(first, raw.backward_success),
+                        learnt=jax.tree.map(first, raw.learnt),
+                        learnt_tasks=jax.tree.map(lambda x: x[:, keep, :num_tasks], raw.learnt_tasks))
 
