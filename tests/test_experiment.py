@@ -59,6 +59,18 @@ def test_results_schema(full_run):
         # Samples-to-success: 2 episodes of Point Goal's 100 steps per iteration.
         assert m["env_steps_per_iteration"] == 200
         np.testing.assert_allclose(m["env_steps_to_success_mean"], np.asarray(m["iterations_to_success_mean"]) * 200)
+        # The field's metrics: forgetting and average performance from the learnt tasks' evaluations after every
+        # chunk (of one task), forward transfer only against a ppo run, a performance profile over the budget.
+        f, ap = m["forgetting"], m["average_performance"]
+        assert f["after_tasks"] == 3 and np.asarray(f["per_task"], dtype=float).shape == (2, 3)
+        assert f["by_evaluation"]["after_tasks"] == ap["by_evaluation"]["after_tasks"] == [1, 2, 3]
+        assert all(0 <= v <= 1 for row in f["success_when_learnt"] + f["final_success"] for v in row)
+        assert ap["after_tasks"] == 3 and len(ap["per_seed"]) == 2 and 0 <= ap["mean"] <= 1
+        assert m["learnt_success"]["mean"][0][1:] == [None, None]  # after task 1, tasks 2 and 3 are not learnt
+        assert m["forward_transfer"]["reference"] is None and "no ppo" in m["forward_transfer"]["note"]
+        profile = m["performance_profile"]
+        assert profile["tau"] == [1, 2, 3] and np.all(np.diff(profile["fraction"]) >= 0)
+        assert all(lo <= v <= hi for lo, v, hi in zip(profile["ci_low"], profile["fraction"], profile["ci_high"]))
     # The meta step's health, for the method that has one: per seed and task, and per seen slot.
     meta = results["methods"]["comps"]["meta"]
     assert "meta" not in results["methods"]["ppo_tl"]
@@ -70,12 +82,32 @@ def test_results_schema(full_run):
     assert len(meta["value_ev_end_mean"]) == 3
     sig = results["significance"]["against"]["ppo_tl"]
     assert sig["bootstrap_samples"] == 30_000 and set(sig) >= {"p_ttest", "p_bootstrap", "t"}
+    poi = results["significance"]["probability_of_improvement"]
+    assert list(poi) == ["ppo_tl"] and poi["ppo_tl"]["over"] == "comps"
+    assert poi["ppo_tl"]["ci"][0] <= poi["ppo_tl"]["probability"] <= poi["ppo_tl"]["ci"][1]
     for plot in ("iterations_to_success", "samples_to_success", "lifelong_return", "per_task_return",
-                 "backward_transfer", "heldout_meta_test", "meta_health"):
+                 "backward_transfer", "heldout_meta_test", "meta_health", "performance_profile", "continual_metrics"):
         assert (full_run / "plots" / f"{plot}.png").stat().st_size > 1000
     table = (full_run / "significance.md").read_text()
     assert table.startswith("Statistic") and "| comps vs |" in table and "Interquartile mean (IQM)" in table
+    assert "| method | average performance | forgetting | forward transfer vs ppo | P(fewer iterations than comps) |" \
+        in table
     assert results["significance"]["baseline"] == "comps"
+
+
+def test_learnt_tasks_are_evaluated_with_the_episodes_they_had_when_learnt(full_run):
+    """After every chunk (one task here) the policy is evaluated on every task learnt: on the task just learnt it
+    is the policy that ``run_chunk`` evaluated right after learning it, on the same episodes (another compiled
+    program, the same numbers), so that task's forgetting is 0."""
+    for name in ("comps", "ppo_tl"):
+        raw = results.load(str(full_run), name)
+        learnt, later = raw.learnt, raw.learnt_tasks
+        assert learnt.valid.all() and later.success_rate.shape == (2, 4, 3)  # [seeds, after 0-3 tasks, tasks]
+        np.testing.assert_array_equal(later.valid[0], np.tril(np.ones((4, 3), bool), -1))  # learnt by then
+        for p in (1, 2, 3):
+            np.testing.assert_allclose(later.mean_return[:, p, p - 1], learnt.mean_return[:, p - 1], rtol=1e-5)
+            np.testing.assert_allclose(later.success_rate[:, p, p - 1], learnt.success_rate[:, p - 1], atol=1e-6)
+        assert raw.backward_success.shape == raw.backward_returns.shape == (2, 3, 2)
 
 
 def test_killed_and_resumed_run_equals_the_uninterrupted_one(runner, full_run, tmp_path, kill_and_resume):
@@ -191,6 +223,7 @@ def test_iqm_and_its_stratified_bootstrap_interval():
     (["--methods", "comps", "--num-tasks", "5", "--max-tasks", "3"], "--max-tasks 3 is smaller than --num-tasks 5"),
     (["--methods", "comps", "--inner-learning-rate", "0"], "inner_learning_rate=0.0"),
     (["--backward-tasks", "-1"], "backward_tasks=-1"),
+    (["--learnt-eval", "never"], "learnt_eval='never'; allowed: chunk, end"),
     (["--devices", "0"], "--devices must be >= 1"),
     (["--resume"], "--resume needs --out"),
     (["--methods", "comps", "ppo_tl", "--baseline", "gmps"],
@@ -270,6 +303,69 @@ def test_resume_refuses_a_comps_run_made_before_per_task_value_networks(runner, 
     assert info.value.code == 2 and "value_init" in err and "start it anew" in err
 
 
+def test_resume_refuses_a_run_made_before_the_learnt_tasks_evaluations(runner, full_run, tmp_path, capsys):
+    old = tmp_path / "old_eval"
+    shutil.copytree(full_run, old)
+    run_json = old / "run.json"
+    stored = json.loads(run_json.read_text())
+    for key in ("learnt_eval", "learnt_episodes"):  # as made before issue 28: its checkpoints lack these metrics
+        del stored["eval"][key]
+    run_json.write_text(json.dumps(stored))
+    with pytest.raises(SystemExit) as info:
+        runner.main(["--out", str(old), "--resume"])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and "eval.learnt_eval" in err and "start it anew" in err
+    assert not (old / "checkpoints" / "comps-unreadable").exists()  # refused before any checkpoint was read
+
+
+def test_runs_made_before_the_learnt_tasks_evaluations_still_report(full_run, tmp_path):
+    old = tmp_path / "old_raw"
+    shutil.copytree(full_run, old, ignore=shutil.ignore_patterns("checkpoints", "plots", "results.json"))
+    for path in (old / "raw").glob("*.npz"):
+        with np.load(path) as f:
+            kept = {k: f[k] for k in f.files if not k.startswith(("learnt", "backward_success"))}
+            assert len(kept) < len(f.files)
+        with open(path, "wb") as f:
+            np.savez(f, **kept)
+    raw = results.load(str(old), "comps")
+    assert raw.learnt is None and raw.learnt_tasks is None and raw.backward_success is None
+    assert results.truncate(raw, 2).learnt is None
+    got = report.write(str(old))
+    full = json.loads((full_run / "results.json").read_text())
+    for name in ("comps", "ppo_tl"):
+        m = got["methods"][name]
+        assert "issue 28" in m["forgetting"]["note"] and "issue 28" in m["average_performance"]["note"]
+        assert m["iterations_to_success"] == full["methods"][name]["iterations_to_success"]
+    assert "| comps | n/a | n/a | n/a | – |" in (old / "significance.md").read_text()
+
+
+def test_forward_transfer_against_a_merged_ppo_run(merge_runs, full_run, tmp_path):
+    """A run of ppo merged beside a method's run is the reference of its forward transfer; here "ppo" is ppo_tl's
+    results with every success rate set to 0.5 (AUC_ref = 0.5), so ppo_tl's FT = (0 − 0.5)/(1 − 0.5) = −1 where
+    its own success stayed 0, and the reference's own FT is 0."""
+    b = _one_method_copy(full_run, tmp_path / "b", "ppo_tl")
+    c = _one_method_copy(full_run, tmp_path / "c", "ppo_tl")
+    desc = json.loads((c / "run.json").read_text())
+    desc["run"]["methods"], desc["methods"] = ["ppo"], {"ppo": desc["methods"]["ppo_tl"]}
+    (c / "run.json").write_text(json.dumps(desc))
+    with np.load(c / "raw" / "ppo_tl.npz") as f:
+        arrays = {k: f[k] for k in f.files}
+    (c / "raw" / "ppo_tl.npz").unlink()
+    arrays["task.per_iteration.success_rate"] = np.full_like(arrays["task.per_iteration.success_rate"], 0.5)
+    with open(c / "raw" / "ppo.npz", "wb") as f:
+        np.savez(f, **arrays)
+    merged = merge_runs.merge(str(tmp_path / "m"), [str(b), str(c)], baseline="ppo")
+    own = np.asarray(merged["methods"]["ppo_tl"]["success_rate_curves"], dtype=object)
+    assert all(v == 0.0 for row in own for curve in row for v in curve)  # the tiny run never succeeds
+    ft = merged["methods"]["ppo_tl"]["forward_transfer"]
+    assert ft["reference"] == "ppo" and ft["horizon"] == 3 and ft["reference_auc"] == [[0.5] * 3] * 2
+    assert ft["per_task"] == [[-1.0] * 3] * 2 and ft["mean"] == -1.0
+    assert merged["methods"]["ppo"]["forward_transfer"]["per_task"] == [[0.0] * 3] * 2
+    # The same iterations-to-success as the baseline: probability of improvement 1/2.
+    assert merged["significance"]["probability_of_improvement"]["ppo_tl"]["probability"] == 0.5
+    assert (tmp_path / "m" / "plots" / "continual_metrics.png").exists()
+
+
 def test_significance_matches_the_t_test_and_detects_equal_groups():
     rng = np.random.default_rng(0)
     x, y = rng.normal(0.0, 1.0, 8), rng.normal(3.0, 1.0, 8)
@@ -304,6 +400,10 @@ def test_eval_config_rejects_bad_values():
         continual.EvalConfig(heldout_iterations=-1)
     with pytest.raises(ValueError, match="heldout_budget"):
         continual.EvalConfig(heldout_budget=-1)
+    with pytest.raises(ValueError, match="learnt_eval='never'; allowed: chunk, end"):
+        continual.EvalConfig(learnt_eval="never")
+    with pytest.raises(ValueError, match="learnt_episodes=-2"):
+        continual.EvalConfig(learnt_episodes=-2)
 
 
 def test_seeds_fill_the_devices():
@@ -375,6 +475,10 @@ def test_evaluation_keys_never_equal_a_key_the_method_draws():
         # The backward-transfer keys are folded further per task and per previous task (continual.run_chunk).
         evaluations |= {tuple(np.asarray(jax.random.fold_in(jax.random.fold_in(eval_keys[0][s], i), d)).tolist())
                         for i in range(4) for d in range(3)}
+        # So are the learnt tasks' evaluation keys, apart from them (continual.learnt_key).
+        learnt = {tuple(np.asarray(continual.learnt_key(eval_keys[0][s], j)).tolist()) for j in range(4)}
+        assert len(learnt) == 4 and not learnt & evaluations
+        evaluations |= learnt
         assert not drawn & evaluations
     # The derivation this replaces (evaluation keys folded from the method's own root) collides: the check bites.
     root = jax.random.PRNGKey(0)
@@ -443,6 +547,27 @@ def test_console_shows_the_meta_steps_health(console, tmp_path):
           "seeds": [0, 1], "metrics": chunk, "per_task": chunk})
     assert lines[-1] == ("[comps] task 2/3 meta phase: heads' EV on returns 0.40 -> 0.80 (newest head 0.20 -> 0.90), "
                          "bias/std +0.20, mean rho 0.60 (oldest task 0.40), |A| 0.5, bc loss 0.500")
+
+
+def test_console_shows_the_learnt_tasks_success_and_forgetting(console, tmp_path):
+    lines = []
+    show = console.Console(lines.append, str(tmp_path), interval=0.0)
+    metrics = _chunk_metrics(2, 2, 3)
+    # Right after learning: seed 0 0.8 and 0.6, seed 1 1.0 and 0.6; after task 2: 0.4, 0.6 and 0.8, 0.6.
+    when = continual.Evaluation(np.zeros((2, 2), np.float32), np.array([[0.8, 0.6], [1.0, 0.6]], np.float32),
+                                np.ones((2, 2), bool))
+    per_task = metrics._replace(learnt=when)
+    now = continual.Evaluation(np.zeros((2, 2), np.float32), np.array([[0.4, 0.6], [0.8, 0.6]], np.float32),
+                               np.ones((2, 2), bool))
+    show({"event": "chunk", "program": "comps", "entry": "comps", "start": 1, "stop": 2, "num_tasks": 4,
+          "seeds": [0, 1], "metrics": per_task, "per_task": per_task, "learnt_tasks": now})
+    assert lines[-1] == ("[comps] after task 2/4: success on the 2 tasks learnt 0.60, right after learning each 0.75 "
+                         "(forgetting +0.15)")
+    # With --learnt-eval end nothing was evaluated after this chunk: no line.
+    show({"event": "chunk", "program": "comps", "entry": "comps", "start": 1, "stop": 2, "num_tasks": 4,
+          "seeds": [0, 1], "metrics": per_task, "per_task": per_task,
+          "learnt_tasks": now._replace(valid=np.zeros((2, 2), bool))})
+    assert not lines[-1].startswith("[comps] after task")
 
 
 def test_console_writes_tensorboard(console, tmp_path):

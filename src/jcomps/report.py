@@ -18,7 +18,14 @@ Metrics (SPEC, "Metrics a user expects"):
   seeds under the null of equal means, Efron & Tibshirani 16.4);
 - the field's current convention (Agarwal et al. 2021, "rliable"): the interquartile mean (IQM) of
   iterations-to-success over seeds × tasks, with a 95% percentile confidence interval from a stratified bootstrap
-  (seeds resampled with replacement within each task, 2,000 resamples), for each half of the sequence.
+  (seeds resampled with replacement within each task, 2,000 resamples), for each half of the sequence;
+- the continual-RL field's metrics (``jcomps.continual_metrics``; Continual World, Wołczyk et al. 2021, and
+  rliable): forgetting per task (success right after learning it − success at the last evaluation of the learnt
+  tasks, the end of the sequence) and at every evaluation; average performance (mean success over the tasks
+  learnt); forward transfer against ``ppo`` from scratch when the run (or a merged run) has it, from the RL
+  step's success curves; the probability that a method needs fewer iterations-to-success than the baseline on a
+  task (Mann–Whitney over seeds, averaged over tasks) with a stratified-bootstrap interval; performance profiles
+  of iterations-to-success (``plots/performance_profile.png``; the others in ``plots/continual_metrics.png``).
 
 With a hyperparameter grid (``jcomps.grid``) there is one entry per method and grid point, keyed
 ``METHOD[field=value,...]``, each with its ``grid`` values and an ``overall`` summary (mean iterations-to-success
@@ -37,6 +44,7 @@ from typing import Optional
 import numpy as np
 
 from jcomps import cli, envs, experiment, methods
+from jcomps import continual_metrics as cm
 from jcomps import results as results_
 from jcomps import grid as grids
 
@@ -191,6 +199,9 @@ def summarize(description: dict, raws: dict, baseline: Optional[str] = None) -> 
     entries = _entries(description)
     family = envs.make(run["family"])
     overall_its, overall_ret = {}, {}
+    # Every method's AUC over one horizon and performance profile over one τ grid: the longest budget of the run.
+    horizon = max(raws[name].task.per_iteration.valid.shape[-1] for _, name, _ in entries)
+    taus = profile_taus(horizon)
     for method, name, values in entries:
         raw = raws[name]
         its = raw.task.iterations
@@ -240,6 +251,10 @@ def summarize(description: dict, raws: dict, baseline: Optional[str] = None) -> 
         }
         if raw.task.meta is not None:
             entry["meta"] = meta_summary(raw.task.meta)
+        entry.update(learnt_summary(raw))
+        entry["performance_profile"] = {"statistic": "fraction of runs (seeds × tasks) that reached the threshold "
+                                                     "within tau iterations; 95% stratified-bootstrap band",
+                                        **cm.performance_profile_ci(its, raw.task.solved, taus)}
         if values is not None:
             seed_means = its.astype(np.float64).mean(axis=1)
             m_its, se_its = _mean_se(seed_means)
@@ -264,7 +279,144 @@ def summarize(description: dict, raws: dict, baseline: Optional[str] = None) -> 
                          + (", each method at its best grid point" if "grid" in description else ""),
             "against": {best[m]: significance(base, raws[best[m]].task.iterations.mean(axis=1))
                         for m in run["methods"] if m != baseline}}
+        results["significance"]["probability_of_improvement"] = {
+            best[m]: probability_of_improvement(raws[best[m]], raws[best[baseline]], best[baseline])
+            for m in run["methods"] if m != baseline}
+    reference = best.get(FT_REFERENCE)
+    ids = np.stack([envs.sequence_values(family, run["sequence"], s, run["num_tasks"]) for s in seeds])
+    for _, name, _ in entries:
+        results["methods"][name]["forward_transfer"] = forward_transfer_summary(
+            raws[name], None if reference is None else raws[reference], reference, ids, horizon)
     return results
+
+
+FT_REFERENCE = "ppo"
+"""The reference of forward transfer: PPO from scratch on every task (Continual World's single-task reference)."""
+
+
+def profile_taus(horizon: int, points: int = 100) -> np.ndarray:
+    """The τ grid of the performance profiles: at most ``points`` integers from 1 to ``horizon``, both included."""
+    return np.unique(np.linspace(1, horizon, min(horizon, points)).round().astype(np.int64))
+
+
+def _rows(x, digits: int = 6):
+    """A float array as nested lists, NaN as None."""
+    x = np.asarray(x, np.float64)
+    if x.ndim == 0:
+        return _json_float(round(float(x), digits))
+    return [_rows(v, digits) for v in x]
+
+
+def _over_seeds(per_seed) -> dict:
+    """{"mean", "se"} over seeds of a f[S] (NaN skipped)."""
+    mean, se = _mean_se(np.asarray(per_seed, np.float64))
+    return {"mean": _json_float(mean), "se": _json_float(se)}
+
+
+def learnt_summary(raw: results_.RawResults) -> dict:
+    """Forgetting, average performance and the success matrix of one entry (Continual World's metrics) from the
+    evaluations of its learnt tasks (``RawResults.learnt`` right after each task, ``learnt_tasks`` after each chunk
+    or at the end): {"forgetting", "average_performance", "learnt_success"}, each with a ``note`` instead when the
+    run has no such evaluations."""
+    if raw.learnt is None or raw.learnt_tasks is None:
+        note = {"note": "not measured: the run was made before the learnt tasks were evaluated (issue 28)"}
+        return {"forgetting": note, "average_performance": note}
+    learnt, later = raw.learnt, raw.learnt_tasks
+    rows = [p for p in range(later.valid.shape[1]) if later.valid[:, p].any()]
+    if not rows:
+        note = {"note": "not measured yet: the learnt tasks are evaluated at the end of the sequence only "
+                        "(--learnt-eval end)"}
+        return {"forgetting": note, "average_performance": note}
+    after = [int(raw.heldout_after_tasks[p]) for p in rows]
+
+    def forgetting_at(p):
+        return cm.forgetting(learnt.success_rate, later.success_rate[:, p], learnt.valid & later.valid[:, p])
+
+    def performance_at(p):
+        return cm.average_performance(later.success_rate[:, p], later.valid[:, p])
+
+    final = rows[-1]
+    f = forgetting_at(final)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        f_seed = np.nanmean(f, axis=1)
+        f_by = [np.nanmean(forgetting_at(p), axis=1) for p in rows]
+    p_seed = performance_at(final)
+    p_by = [performance_at(p) for p in rows]
+    return {
+        "forgetting": {
+            "statistic": "per seed and task: success right after learning the task − success on it after "
+                         f"{after[-1]} tasks (fresh episodes, the same ones both times); mean and s.e. over seeds of "
+                         "each seed's mean over the tasks",
+            "after_tasks": after[-1],
+            "success_when_learnt": _rows(np.where(learnt.valid, learnt.success_rate, np.nan)),
+            "final_success": _rows(np.where(later.valid[:, final], later.success_rate[:, final], np.nan)),
+            "per_task": _rows(f),
+            "per_task_mean": _rows(_mean_se(f)[0]),
+            **_over_seeds(f_seed),
+            "by_evaluation": {"after_tasks": after, "mean": [_over_seeds(x)["mean"] for x in f_by],
+                              "se": [_over_seeds(x)["se"] for x in f_by]},
+        },
+        "average_performance": {
+            "statistic": f"per seed: mean success over the {after[-1]} tasks learnt, after the last of them; mean and "
+                         "s.e. over seeds",
+            "after_tasks": after[-1],
+            "per_seed": _rows(p_seed),
+            **_over_seeds(p_seed),
+            "by_evaluation": {"after_tasks": after, "mean": [_over_seeds(x)["mean"] for x in p_by],
+                              "se": [_over_seeds(x)["se"] for x in p_by]},
+        },
+        "learnt_success": {
+            "statistic": "mean over seeds of the success on each task (columns) at each evaluation (rows: after "
+                         "after_tasks tasks); null: not learnt by then",
+            "after_tasks": after,
+            "mean": _rows(np.stack([_mean_se(np.where(later.valid[:, p], later.success_rate[:, p], np.nan))[0]
+                                    for p in rows])),
+        },
+    }
+
+
+def forward_transfer_summary(raw: results_.RawResults, reference_raw: Optional[results_.RawResults],
+                             reference: Optional[str], ids: np.ndarray, horizon: int) -> dict:
+    """Continual World's forward transfer of one entry against the ``reference`` entry (PPO from scratch;
+    ``FT_REFERENCE``): per seed and task FT = (AUC − AUC_ref)/(1 − AUC_ref), AUC the success rate averaged over
+    ``horizon`` iterations (``continual_metrics.auc``), AUC_ref the reference's averaged over its seeds on the same
+    task (``ids`` [seeds, num_tasks]: each seed's task values). A ``note`` when the run has no reference."""
+    if reference_raw is None:
+        return {"reference": None, "note": f"not measured: no {FT_REFERENCE} (from scratch) in this run; merge a run "
+                                           f"of {FT_REFERENCE} with the same options (experiments/merge_runs.py)"}
+    per_iteration = raw.task.per_iteration
+    n = per_iteration.valid.shape[1]
+    a = cm.auc(per_iteration.success_rate, per_iteration.valid, horizon)
+    ref = reference_raw.task.per_iteration
+    ref_a = cm.reference_by_task(cm.auc(ref.success_rate, ref.valid, horizon), ids[:, :ref.valid.shape[1]],
+                                 ids[:, :n])
+    ft = cm.forward_transfer(a, ref_a)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        ft_seed = np.nanmean(ft, axis=1)
+    return {
+        "reference": reference,
+        "statistic": f"per seed and task: (AUC − AUC_ref)/(1 − AUC_ref), AUC the mean success rate over {horizon} "
+                     "iterations (the last one carried past an early stop), AUC_ref the reference's mean over its "
+                     "seeds on the same task; mean and s.e. over seeds of each seed's mean over the tasks",
+        "horizon": int(horizon),
+        "auc": _rows(a),
+        "reference_auc": _rows(ref_a),
+        "per_task": _rows(ft),
+        "per_task_mean": _rows(_mean_se(ft)[0]),
+        **_over_seeds(ft_seed),
+    }
+
+
+def probability_of_improvement(raw: results_.RawResults, baseline_raw: results_.RawResults, baseline: str) -> dict:
+    """rliable's probability that a run of this entry needs fewer iterations-to-success than a run of the
+    ``baseline`` on the same task (position), averaged over tasks, with a 95% stratified-bootstrap interval."""
+    return {"over": baseline,
+            "statistic": f"P(iterations-to-success < {baseline}'s; ties count 1/2) per task over pairs of seeds "
+                         "(Mann-Whitney), averaged over tasks; 95% stratified-bootstrap interval",
+            **cm.probability_of_improvement_ci(-raw.task.iterations.astype(np.float64),
+                                               -baseline_raw.task.iterations.astype(np.float64))}
 
 
 def meta_summary(meta) -> dict:
@@ -435,6 +587,45 @@ def _plots(results: dict, raws: dict, directory: str) -> list[str]:
             integer_ticks(a)
             a.legend(fontsize=7)
         save(fig, "meta_health.png")
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for k_, (name, m) in enumerate(methods_.items()):
+        profile = m["performance_profile"]
+        ax.step(profile["tau"], profile["fraction"], where="post", color=f"C{k_}", label=name)
+        ax.fill_between(profile["tau"], profile["ci_low"], profile["ci_high"], step="post", color=f"C{k_}", alpha=0.2)
+    ax.set(xlabel="tau (iterations)", ylabel="fraction of runs solved within tau", ylim=(-0.02, 1.02),
+           title=f"Performance profile ({title})")
+    ax.legend()
+    save(fig, "performance_profile.png")
+
+    fig, (ax_f, ax_ft, ax_p) = plt.subplots(1, 3, figsize=(17, 4), gridspec_kw={"wspace": 0.3})
+    as_array = lambda x: np.array([[np.nan if v is None else v for v in row] for row in x], np.float64)  # noqa
+    for k_, (name, m) in enumerate(methods_.items()):
+        if "per_task" in m["forgetting"]:
+            band(ax_f, tasks, as_array(m["forgetting"]["per_task"]), name)
+        if "per_task" in m["forward_transfer"]:
+            band(ax_ft, tasks, as_array(m["forward_transfer"]["per_task"]), name)
+        by = m["average_performance"].get("by_evaluation")
+        if by:
+            se = [np.nan if v is None else v for v in by["se"]]
+            ax_p.errorbar(by["after_tasks"], [np.nan if v is None else v for v in by["mean"]], yerr=se, marker="o",
+                          ms=3, color=f"C{k_}", label=name)
+    some = next(iter(methods_.values()))
+    after = some["forgetting"].get("after_tasks")
+    reference = some["forward_transfer"].get("reference")
+    ax_f.set(xlabel="task", ylabel="success when learnt − success later",
+             title="Forgetting" + (f" after {after} tasks" if after else ""))
+    ax_ft.set(xlabel="task", ylabel="(AUC − AUC_ref)/(1 − AUC_ref)",
+              title=f"Forward transfer against {reference}" if reference else "Forward transfer")
+    ax_p.set(xlabel="tasks learnt", ylabel="mean success on the tasks learnt", title="Average performance")
+    for a, missing in ((ax_f, "not measured"), (ax_ft, f"no {FT_REFERENCE} in this run"), (ax_p, "not measured")):
+        a.axhline(0.0, color="gray", lw=0.8, ls="--")
+        integer_ticks(a)
+        if a.get_legend_handles_labels()[0]:
+            a.legend(fontsize=8)
+        else:
+            a.text(0.5, 0.5, missing, transform=a.transAxes, ha="center", color="gray")
+    save(fig, "continual_metrics.png")
     return written
 
 
@@ -464,6 +655,38 @@ def significance_table(results: dict) -> str:
               "|---" * (len(halves) + 1) + "|"]
     for name, m in entries.items():
         cells = [f"{h['iqm']:.1f} [{fmt(h['ci'][0])}, {fmt(h['ci'][1])}]" for h in m["iqm"]]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n\n" + field_table(results, entries)
+
+
+def field_table(results: dict, entries: dict) -> str:
+    """Markdown table of the continual-RL field's metrics of ``entries`` ({name: results entry}): average
+    performance, forgetting, forward transfer (mean ± s.e. over seeds) and the probability of improvement over the
+    baseline with its interval."""
+    sig = results.get("significance")
+    baseline = sig["baseline"] if sig else None
+    some = next(iter(entries.values()))
+    reference = some["forward_transfer"].get("reference")
+    pm = lambda d: "n/a" if d.get("mean") is None else (  # noqa: E731
+        f"{d['mean']:.3f} ± {'n/a' if d.get('se') is None else format(d['se'], '.3f')}")
+    head = ["average performance", "forgetting", f"forward transfer vs {reference or FT_REFERENCE}"]
+    if baseline:
+        head.append(f"P(fewer iterations than {baseline})")
+    after = some["forgetting"].get("after_tasks")
+    lines = ["Continual-RL metrics (Continual World, Wolczyk et al. 2021; rliable, Agarwal et al. 2021), mean ± s.e. "
+             "over seeds: success rates on the tasks learnt, evaluated with fresh episodes"
+             + (f" after {after} tasks" if after else "") + " (average performance) and right after each was "
+             "learnt (forgetting = then − now); forward transfer from the RL step's success curves against "
+             f"{reference or FT_REFERENCE} from scratch"
+             + ("" if reference else f" (n/a: no {FT_REFERENCE} in this run)")
+             + ("; probability of improvement in iterations-to-success per task (Mann-Whitney over seeds, "
+                "averaged over tasks) with a 95% stratified-bootstrap interval" if baseline else "") + ".", "",
+             "| method | " + " | ".join(head) + " |", "|---" * (len(head) + 1) + "|"]
+    for name, m in entries.items():
+        cells = [pm(m["average_performance"]), pm(m["forgetting"]), pm(m["forward_transfer"])]
+        if baseline:
+            poi = sig.get("probability_of_improvement", {}).get(name)
+            cells.append("–" if poi is None else f"{poi['probability']:.3f} [{poi['ci'][0]:.3f}, {poi['ci'][1]:.3f}]")
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
