@@ -9,7 +9,8 @@ slow method checkpointing after every task beside others in chunks of 5: the met
 it); held-out measurements are then at each method's own chunk boundaries, which the report plots as they are,
 and the merged ``run.json`` lists each method's ``chunk_tasks`` under ``run.chunk_tasks_by_method``. The merged
 directory gets ``run.json`` and ``raw/``, then ``results.json``, the plots and ``significance.md`` as if one run
-had run them all (checkpoints stay in the sources).
+had run them all (checkpoints stay in the sources); a source that ran ``ppo`` (from scratch) gives every method's
+forward transfer its reference.
 
     python experiments/merge_runs.py runs/hc20 runs/hc20-a runs/hc20-b [--baseline ppo_tl] [--methods comps ppo_tl]
     python experiments/merge_runs.py runs/ag10 runs/ag10-comps runs/ag10-ppo_tl --partial   # studies still going
