@@ -339,6 +339,21 @@ def test_runs_made_before_the_learnt_tasks_evaluations_still_report(full_run, tm
     assert "| comps | n/a | n/a | n/a | – |" in (old / "significance.md").read_text()
 
 
+def test_forgetting_with_the_learnt_tasks_evaluated_at_the_end_only(full_run):
+    """With --learnt-eval end only the last row of the learnt tasks' evaluations is valid: forgetting and average
+    performance come from it alone, and a run stopped before its end has none to report yet."""
+    raw = results.load(str(full_run), "ppo_tl")
+    every = report.learnt_summary(raw)
+    valid = raw.learnt_tasks.valid.copy()
+    valid[:, :-1] = False
+    end = report.learnt_summary(raw._replace(learnt_tasks=raw.learnt_tasks._replace(valid=valid)))
+    assert end["forgetting"]["by_evaluation"]["after_tasks"] == [3]
+    assert end["forgetting"]["per_task"] == every["forgetting"]["per_task"]
+    assert end["average_performance"]["mean"] == every["average_performance"]["mean"]
+    none = report.learnt_summary(raw._replace(learnt_tasks=raw.learnt_tasks._replace(valid=valid & False)))
+    assert "--learnt-eval end" in none["forgetting"]["note"] and "note" in none["average_performance"]
+
+
 def test_forward_transfer_against_a_merged_ppo_run(merge_runs, full_run, tmp_path):
     """A run of ppo merged beside a method's run is the reference of its forward transfer; here "ppo" is ppo_tl's
     results with every success rate set to 0.5 (AUC_ref = 0.5), so ppo_tl's FT = (0 − 0.5)/(1 − 0.5) = −1 where
