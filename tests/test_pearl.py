@@ -149,6 +149,15 @@ def test_buffers_keep_every_task_and_never_mix_slots(tiny, family):
     rows, mask = buffers.transitions_sample(cleared, 0, 256, jax.random.PRNGKey(6))
     np.testing.assert_array_equal(rows["obs"], 3.0)
     assert int(cleared.count[0]) == batch
+    # on families whose episodes end early, valid_only draws only transitions (never a row after an episode's end)
+    ended = traj._replace(valid=traj.valid.at[traj.valid.shape[0] // 2:].set(0.0))
+    store = buffers.transitions_add(buffers.transitions_init(1, batch, family.obs_size, family.action_size), 0, ended)
+    rows, mask = buffers.transitions_sample(store, 0, 512, jax.random.PRNGKey(7), valid_only=True)
+    assert float(mask.min()) == 1.0
+    _, mask_any = buffers.transitions_sample(store, 0, 512, jax.random.PRNGKey(7))
+    assert 0.3 < float(mask_any.mean()) < 0.7  # the uniform index meets the rows after the end half the time
+    _, none = buffers.transitions_sample(buffers.transitions_init(1, batch, 2, 2), 0, 4, jax.random.PRNGKey(8), True)
+    np.testing.assert_array_equal(none, 0.0)
     # the next observation of the last step is the one reached at T_max (a truncation, not a termination)
     flat = buffers.transitions_of(traj)
     np.testing.assert_array_equal(flat["next_obs"].reshape(traj.obs.shape)[-1], traj.last_obs)

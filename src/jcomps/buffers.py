@@ -253,12 +253,24 @@ def transition_capacity(size: int, batch: int) -> int:
     return max(1, size // batch) * batch
 
 
-def transitions_sample(store: TransitionStore, slot: jax.Array, num: int, rng: jax.Array) -> tuple[dict, jax.Array]:
+def transitions_sample(store: TransitionStore, slot: jax.Array, num: int, rng: jax.Array,
+                       valid_only: bool = False) -> tuple[dict, jax.Array]:
     """``num`` transitions of slot ``slot`` drawn uniformly (with replacement) from those written and still held,
-    and f32[num], 1 where the row is a valid transition (0 for an empty slot or a step after a termination)."""
+    and f32[num], 1 where the row is a valid transition (0 for an empty slot or a step after a termination).
+
+    With ``valid_only`` the draw is uniform over the held rows that are valid transitions (as a buffer that stores
+    only the steps taken, oyster's, samples), so every row is one unless the slot holds none; for families whose
+    episodes never end early every held row is valid (rows of non-finite episodes aside), and the cheaper uniform
+    index of the default draws the same distribution."""
     capacity = store.reward.shape[1]
     held = jnp.minimum(store.count[slot], capacity)
-    idx = jax.random.randint(rng, (num,), 0, jnp.maximum(held, 1))
+    if valid_only:
+        weight = store.valid[slot] * (jnp.arange(capacity) < held)
+        cdf = jnp.cumsum(weight)
+        u = jax.random.uniform(rng, (num,)) * cdf[-1]
+        idx = jnp.minimum(jnp.searchsorted(cdf, u, side="right"), capacity - 1)
+    else:
+        idx = jax.random.randint(rng, (num,), 0, jnp.maximum(held, 1))
     rows = {k: getattr(store, k)[slot, idx] for k in ("obs", "action", "reward", "next_obs", "done", "valid")}
     mask = rows.pop("valid") * (held > 0).astype(jnp.float32)
     return rows, mask

@@ -310,9 +310,11 @@ def draw_slots(config: PEARLConfig, count: jax.Array, current, rng: jax.Array) -
     return slots.at[:config.current_slots].set(current)
 
 
-def sample_context(config: PEARLConfig, replay: buffers.TransitionStore, slot, rng) -> tuple[jax.Array, jax.Array]:
-    """``context_size`` transitions of ``slot`` as the encoder's input f32[n, width] and their mask."""
-    rows, mask = buffers.transitions_sample(replay, slot, config.context_size, rng)
+def sample_context(config: PEARLConfig, replay: buffers.TransitionStore, slot, rng,
+                   valid_only: bool = False) -> tuple[jax.Array, jax.Array]:
+    """``context_size`` transitions of ``slot`` as the encoder's input f32[n, width] and their mask
+    (``valid_only``: drawn among the valid transitions, ``buffers.transitions_sample``)."""
+    rows, mask = buffers.transitions_sample(replay, slot, config.context_size, rng, valid_only)
     return context_features(config, rows), mask
 
 
@@ -391,6 +393,9 @@ def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optio
     n_prior = config.prior_episodes if from_prior else 0
     n_post = config.num_trajectories - n_prior
     n_initial = config.initial_episodes(family)
+    # Where episodes can end early, rows after the end are stored but are no transitions: draw among the valid
+    # ones, so every slot gets full batches and contexts (oyster stores only the steps taken).
+    valid_only = family.can_terminate
     _, critic_loss_fn, _ = sac_losses.make_losses(nets.sac, reward_scaling=config.reward_scale,
                                                   discounting=config.discount, action_size=family.action_size)
     target_entropy = -0.5 * family.action_size  # brax's
@@ -416,7 +421,7 @@ def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optio
     def draw_z(encoder, store, slot, rng, shape=()):
         """z from the posterior of one context of ``slot``, ``shape`` draws of it."""
         k_ctx, k_z = jax.random.split(rng)
-        context, mask = sample_context(config, store, slot, k_ctx)
+        context, mask = sample_context(config, store, slot, k_ctx, valid_only)
         mu, var = posterior(config, nets, encoder, context, mask)
         return mu + jnp.sqrt(var) * jax.random.normal(k_z, shape + mu.shape, jnp.float32)
 
@@ -444,9 +449,11 @@ def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optio
     def gradient_step(state: PEARLState, key: jax.Array):
         k_slots, k_rows, k_ctx, k_critic, k_actor = jax.random.split(key, 5)
         slots = draw_slots(config, state.replay.count, state.task_index, k_slots)
-        rows, mask = jax.vmap(lambda s, k: buffers.transitions_sample(state.replay, s, config.minibatch_size, k))(
+        rows, mask = jax.vmap(lambda s, k: buffers.transitions_sample(state.replay, s, config.minibatch_size, k,
+                                                                      valid_only))(
             slots, jax.random.split(k_rows, config.meta_batch))
-        contexts, context_mask = jax.vmap(lambda s, k: sample_context(config, context_store(state), s, k))(
+        contexts, context_mask = jax.vmap(lambda s, k: sample_context(config, context_store(state), s, k,
+                                                                      valid_only))(
             slots, jax.random.split(k_ctx, config.meta_batch))
         alpha = jnp.exp(state.log_alpha)
         policy_net = state.params.policy["net"]
