@@ -141,7 +141,9 @@ def test_every_traced_field_traces(name):
     index = abstract(jnp.zeros(1, jnp.int32))
     metrics = jax.eval_shape(program.run_chunk, states, seq, jnp.int32(0), keys, index, hparams)[1]
     assert metrics.task.iterations.shape == (1, 1)
-    jax.eval_shape(program.heldout, states, envs.held_out(family), keys, hparams)
+    held, learnt = jax.eval_shape(program.heldout, states, envs.held_out(family), keys, seq, jnp.int32(1), keys,
+                                  hparams)
+    assert held.iterations.shape[0] == 1 and jax.tree.leaves(learnt)[0].shape[:2] == (1, 2)
 
 
 # --- the compiled grid program ----------------------------------------------------------------------------------
