@@ -30,11 +30,38 @@ class Progress:
         self.start = time.time()
         self.start_task = start_task
         self.last = 0.0
+        self.heldout_start = time.time()
+        self.heldout_iteration = np.zeros((seeds, 0), np.int64)
         self.task = np.full(seeds, start_task, np.int64)
         self.iteration = np.zeros(seeds, np.int64)
         self.success = np.zeros(seeds)
         self.meta_loss = np.full(seeds, np.nan)
         self.meta_health = np.full((seeds, 4), np.nan)  # value l2, value EV on returns, mean |Â|, mean ρ
+
+    def restart_clock(self):
+        """Elapsed and remaining count from now (after the learning program compiled)."""
+        self.start = time.time()
+
+    def resumed(self, tasks_done: int):
+        """The run continues after ``tasks_done`` tasks."""
+        self.start_task = tasks_done
+        self.task[:] = tasks_done
+
+    def heldout_begin(self):
+        """A held-out meta-test begins: its progress lines count from now."""
+        self.heldout_start = time.time()
+        self.heldout_iteration = np.zeros((len(self.task), 0), np.int64)
+
+    def record_heldout(self, member: int, heldout_task: int, iteration: int):
+        """After every PPO iteration of a member's adaptation to a held-out task."""
+        h = self.heldout_iteration
+        if heldout_task >= h.shape[1]:
+            h = np.concatenate([h, np.zeros((h.shape[0], heldout_task + 1 - h.shape[1]), np.int64)], axis=1)
+        h[member, heldout_task] = iteration
+        self.heldout_iteration = h
+        self._throttled(lambda: f"[{self.name}] held-out meta-test: {h.shape[1]} held-out tasks, iteration "
+                                f"{int(h.max())} (slowest {int(h.min())}) | elapsed "
+                                f"{_clock(time.time() - self.heldout_start)}")
 
     def record_iteration(self, member: int, task: int, iteration: int, success_rate: float):
         """After every RL iteration of a member."""
@@ -127,12 +154,33 @@ class Console:
             grid_text = f" × {points} grid points = {points * event['seeds']} members" if points > 1 else ""
             self.log(f"[{name}] {event['family']} {event['sequence']}, {event['num_tasks']} tasks, {event['seeds']} "
                      f"seeds{grid_text}{extra} on {event['devices']} device(s), budget {event['budget']}, chunks of "
-                     f"{event['chunk']}; compiling...")
+                     f"{event['chunk']}")
             self.progress[name] = Progress(name, len(event["members"]), event["num_tasks"], event["start_task"],
                                            self.log, self.interval, event["members"] if points > 1 else None)
+        elif kind == "compiling":
+            after = " (while the first task trains)" if event["part"] in ("evaluate_task", "heldout") else ""
+            self.log(f"[{name}] compiling the {event['what']} program ({event['family']}, {event['method']}){after}...")
+        elif kind == "compiled":
+            cached = "; from the compile cache" if event["seconds"] - event["trace_seconds"] < 3 else ""
+            self.log(f"[{name}] {event['what']} program ready in {_clock(event['seconds'])} (tracing "
+                     f"{event['trace_seconds']:.0f}s{cached})")
+            if event["part"] == "learn" and name in self.progress:
+                self.progress[name].restart_clock()
         elif kind == "resumed":
             self.log(f"[{name}] resumed from checkpoint {event['step']}: {event['tasks_done']}/{event['num_tasks']} "
                      "tasks done")
+            if name in self.progress:
+                self.progress[name].resumed(event["tasks_done"])
+        elif kind == "evaluating":
+            after = event["after_tasks"]
+            what = "the initial policies" if after == 0 else f"the policies after task {after}"
+            self.log(f"[{name}] held-out meta-test{' and learnt tasks' if event['learnt'] else ''} of {what}...")
+            if name in self.progress:
+                self.progress[name].heldout_begin()
+        elif kind == "heldout_iteration" and name in self.progress:
+            self.progress[name].record_heldout(event["member"], event["heldout_task"], event["heldout_iteration"])
+        elif kind == "evaluated":
+            self.log(f"[{name}] evaluations after {event['after_tasks']} task(s) done in {_clock(event['seconds'])}")
         elif kind == "warning":
             self.log(f"warning: {event['message']}")
         elif kind == "iteration" and name in self.progress:

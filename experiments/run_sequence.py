@@ -63,7 +63,7 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from jcomps import cli, continual, envs, experiment, methods, report  # noqa: E402
+from jcomps import cli, compile_cache, continual, envs, experiment, hostdevices, methods, report  # noqa: E402
 from jcomps import grid as grids  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -84,6 +84,10 @@ def parse_args(argv=None):
                              "up to a multiple of the devices used; the extra ones are not reported. On a GPU "
                              "machine the run uses the GPUs instead")
     parser.add_argument("--tensorboard", action="store_true", help="also write TensorBoard logs (tensorboardX)")
+    parser.add_argument("--compile-cache", default=os.environ.get("JCOMPS_COMPILE_CACHE"), metavar="DIR",
+                        help="JAX's persistent compilation cache: a second identical run, or a --resume, loads its "
+                             "programs instead of compiling them; none: off (default: $JCOMPS_COMPILE_CACHE, else "
+                             f"{compile_cache.default_directory()})")
     parser.add_argument("--grid", dest="grid_specs", action="append", default=None, metavar="FIELD=VALUES",
                         help="a hyperparameter grid axis, VALUES comma-separated (repeat --grid for more axes; the "
                              "run takes the product of the values × the seeds): any method config field, e.g. "
@@ -103,6 +107,11 @@ def parse_args(argv=None):
     args = parser.parse_args(argv)
     if args.devices is not None and args.devices < 1:
         parser.error(f"--devices must be >= 1, got {args.devices}")
+    import jax
+
+    if args.devices is not None and jax.default_backend() == "cpu" and args.devices > hostdevices.cores():
+        parser.error(f"--devices {args.devices}: this machine has {hostdevices.cores()} cores; allowed: 1 to "
+                     f"{hostdevices.cores()} host devices (one per core; more only slow every seed down)")
     if args.resume and not args.out:
         parser.error("--resume needs --out, the run directory to continue")
     try:
@@ -187,6 +196,14 @@ def _from_stored(args):
 
 def main(argv=None):
     args = parse_args(argv)
+    try:
+        cache = compile_cache.configure(args.compile_cache)
+    except ValueError as err:
+        print(f"run_sequence.py: error: --compile-cache: {err}", file=sys.stderr)
+        sys.exit(2)
+    print(f"compile cache: {cache or 'off'}" + ("" if cache is None or compile_cache.callbacks_cached() else
+                                              " (programs with progress callbacks are not cached by this jax)"),
+          flush=True)
     try:
         console = Console(lambda line: print(line, flush=True), args.out, args.tensorboard)
         experiment.run(args.out, args.run, args.eval, args.configs, resume=args.resume, progress_fn=console,

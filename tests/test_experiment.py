@@ -529,13 +529,40 @@ def test_console_turns_runner_events_into_lines(console, tmp_path):
     show({"event": "warning", "message": "checkpoint step 2 cannot be read"})
     show({"event": "done", "program": "comps", "seconds": 75.0})
     assert lines[0] == ("[comps] point_goal stationary, 2 tasks, 3 seeds (+1 to fill the devices, not reported) on 2 "
-                        "device(s), budget 4, chunks of 1; compiling...")
+                        "device(s), budget 4, chunks of 1")
     assert lines[1].startswith("[comps] task 1/2 iteration 3 success 0.12")
     assert lines[2].startswith("[comps] task 1/2 meta-training step 7/125 bc loss 1.250")
     assert lines[3].startswith("[comps] task 1/2 compress iteration 2/15 kl ")  # pnc's compress phase
     assert lines[4] == "[comps] task 1/2 iterations-to-success per seed: [4, 4, 4] (mean 4.0)"
     assert lines[5].startswith("error: [comps] non-finite values (NaN/inf) at seed 2, task 1, iteration 2")
     assert lines[6] == "warning: checkpoint step 2 cannot be read" and lines[7] == "[comps] done in 1m15s"
+
+
+def test_console_says_what_compiles_and_evaluates(console, tmp_path):
+    """No silent phase: every compile says what and how long, the held-out meta-test shows its progress."""
+    lines = []
+    show = console.Console(lines.append, str(tmp_path), interval=0.0)
+    show({"event": "start", "program": "comps", "family": "cheetah_vel", "sequence": "non-stationary",
+          "num_tasks": 2, "seeds": 2, "grid_points": 1, "padding": 0, "devices": 2, "budget": 4, "chunk": 2,
+          "start_task": 0, "members": ["comps seed 0", "comps seed 1"]})
+    where = {"program": "comps", "family": "cheetah_vel", "method": "comps"}
+    show({"event": "compiling", "part": "learn", "what": "learning", **where})
+    show({"event": "compiled", "part": "learn", "what": "learning", "seconds": 95.0, "trace_seconds": 12.0,
+          **where})
+    show({"event": "compiling", "part": "heldout", "what": "held-out", **where})
+    show({"event": "compiled", "part": "heldout", "what": "held-out", "seconds": 13.5, "trace_seconds": 12.0,
+          **where})
+    show({"event": "evaluating", "program": "comps", "after_tasks": 0, "learnt": 0})
+    show({"event": "heldout_iteration", "program": "comps", "member": 1, "heldout_task": 7, "heldout_iteration": 3,
+          "success_rate": 0.0, "mean_return": -1.0})
+    show({"event": "evaluated", "program": "comps", "after_tasks": 0, "seconds": 42.0})
+    assert lines[1] == "[comps] compiling the learning program (cheetah_vel, comps)..."
+    assert lines[2] == "[comps] learning program ready in 1m35s (tracing 12s)"
+    assert lines[3].endswith("(while the first task trains)...")
+    assert lines[4] == "[comps] held-out program ready in 0m13s (tracing 12s; from the compile cache)"
+    assert lines[5] == "[comps] held-out meta-test of the initial policies..."
+    assert lines[6].startswith("[comps] held-out meta-test: 8 held-out tasks, iteration 3 (slowest 0) | elapsed")
+    assert lines[7] == "[comps] evaluations after 0 task(s) done in 0m42s"
 
 
 def test_console_shows_the_meta_steps_health(console, tmp_path):

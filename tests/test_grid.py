@@ -139,11 +139,20 @@ def test_every_traced_field_traces(name):
     seq = abstract(jax.tree.map(lambda x: x[None], envs.sequence(family, num_tasks=2)))
     keys = abstract(jax.random.PRNGKey(0)[None])
     index = abstract(jnp.zeros(1, jnp.int32))
-    metrics = jax.eval_shape(program.run_chunk, states, seq, jnp.int32(0), keys, index, hparams)[1]
+    metrics = jax.eval_shape(lambda *a: program.run_chunk(a[0], a[1], 0, *a[2:]), states, seq, keys, index,
+                             hparams)[1]
     assert metrics.task.iterations.shape == (1, 1)
     held, learnt = jax.eval_shape(program.heldout, states, envs.held_out(family), keys, seq, jnp.int32(1), keys,
-                                  hparams)
+                                  index, hparams)
     assert held.iterations.shape[0] == 1 and jax.tree.leaves(learnt)[0].shape[:2] == (1, 2)
+    # The runner sizes its host copies from continual's shapes without tracing these programs: they must agree.
+    eval_config = continual.EvalConfig().resolve("point_goal")
+    member = lambda tree: jax.tree.map(lambda x: (1,) + x.shape + (x.dtype,), tree)  # noqa: E731
+    expected = continual.heldout_shapes(eval_config, "point_goal", len(family.held_out_values), 2)
+    assert member(expected) == jax.tree.map(lambda x: x.shape + (x.dtype,), (held, learnt))
+    evaluation = jax.eval_shape(program.evaluate_task, states, seq, jnp.int32(0), keys, hparams)
+    assert member(continual.task_evaluation_shapes(eval_config)) == jax.tree.map(lambda x: x.shape + (x.dtype,),
+                                                                                  evaluation)
 
 
 # --- the compiled grid program ----------------------------------------------------------------------------------
@@ -208,11 +217,11 @@ def test_one_point_grid_equals_the_run_without_a_grid(runner, plain_run, tmp_pat
 
 
 def test_grid_program_traced_once(runner, grid_run):
-    """Each program of the grid run (3 chunks) traced its chunk, init and held-out functions once."""
+    """Each program of the grid run (3 chunks) traced each of its functions once."""
     programs = [p for k, p in runner.PROGRAMS.items() if k[0] == "ppo_tl" and k[3] == ("learning_rate",)]
     assert len(programs) == 2
     for p in programs:
-        assert p.traces == {"init": 1, "run_chunk": 1, "heldout": 1}
+        assert p.traces == {"init": 1, "learn": 1, "evaluate_task": 1, "heldout": 1}
 
 
 def test_killed_and_resumed_grid_run_equals_the_uninterrupted_one(runner, grid_run, tmp_path):

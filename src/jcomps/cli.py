@@ -14,6 +14,7 @@ import argparse
 import ast
 import dataclasses
 import inspect
+import math
 import re
 import typing
 from typing import Optional
@@ -47,11 +48,39 @@ def flat_fields(cls) -> list[tuple[str, type, object, str]]:
     return out
 
 
+def _parse_int(s: str) -> int:
+    try:
+        return int(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {s!r}") from None
+
+
+def _parse_float(s: str) -> float:
+    try:
+        value = float(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {s!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {s!r}")
+    return value
+
+
 def _parser_for(tp):
+    """The function that parses one command-line word as a value of field type ``tp``; it raises
+    ``argparse.ArgumentTypeError`` naming the expected type (argparse then names the option)."""
     origin, args = typing.get_origin(tp), typing.get_args(tp)
     if origin is typing.Union and type(None) in args:
         inner = _parser_for(next(a for a in args if a is not type(None)))
-        return lambda s: None if s.lower() == "none" else inner(s)
+
+        def parse_optional(s):
+            if s.lower() == "none":
+                return None
+            try:
+                return inner(s)
+            except argparse.ArgumentTypeError as err:
+                expected = str(err).split(", got ")[0]
+                raise argparse.ArgumentTypeError(f"{expected} or none, got {s!r}") from None
+        return parse_optional
     if tp is bool:
         def parse_bool(s):
             if s.lower() in ("1", "true", "yes", "on"):
@@ -61,8 +90,8 @@ def _parser_for(tp):
             raise argparse.ArgumentTypeError(f"expected true or false, got {s!r}")
         return parse_bool
     if origin is tuple:
-        return args[0]  # one element per command-line word (nargs="+"), made a tuple by build_config
-    return tp
+        return _parser_for(args[0])  # one element per command-line word (nargs="+"), made a tuple by build_config
+    return {int: _parse_int, float: _parse_float}.get(tp, tp)
 
 
 def add_config_args(parser: argparse.ArgumentParser, classes) -> None:
@@ -127,7 +156,7 @@ def parse_value(tp, text: str):
     text = text.strip()
     try:
         if origin is tuple:
-            return tuple(args[0](x) for x in re.split(r"[x,\s]+", text))
+            return tuple(_parser_for(args[0])(x) for x in re.split(r"[x,\s]+", text))
         return _parser_for(tp)(text)
     except (ValueError, TypeError, argparse.ArgumentTypeError) as err:
         raise ValueError(f"cannot parse {text!r} as {getattr(tp, '__name__', tp)} ({err})") from None

@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 
 from jcomps import acting, ppo
-from jcomps.numerics import check_field, concrete_max
+from jcomps.numerics import check_field, check_finite_fields, concrete_max
 from jcomps.progress import ProgressFn, with_fields
 from jcomps.methods import base
 from jcomps.methods.base import Method, TaskMetrics
@@ -94,6 +94,13 @@ def run_seeds(method: Method, tasks, rngs: jax.Array, progress_fn: Optional[Prog
     return jax.jit(run)(tasks, rngs, jnp.arange(rngs.shape[0], dtype=jnp.int32))
 
 
+HELDOUT_BUDGET = {"point_goal": 50, None: 0}
+"""``EvalConfig.heldout_budget`` by family (None: every other family). The held-out iterations-to-success is ours
+(the paper's held-out measure is the return after a small fixed budget, the curve of ``heldout_iterations``): on
+Point Goal, where held-out tasks are solved in a few iterations, it is cheap; on the MuJoCo families and MetaWorld
+8–9 held-out tasks × 50 PPO iterations after every chunk cost as much as the training itself, and a held-out task
+is rarely solved within them, so only the curve is measured unless asked (``--heldout-budget 50``)."""
+
 LEARNT_EVAL = ("chunk", "end")
 """When ``learnt_tasks`` runs (``EvalConfig.learnt_eval``): after every chunk, or after the last task only."""
 
@@ -107,9 +114,10 @@ class EvalConfig:
     heldout_iterations: int = 5
     """Length of the held-out return curve: PPO iterations of adaptation on each held-out task, from the current
     policy, after every chunk (no learning is kept)."""
-    heldout_budget: int = 50
-    """Cap of the held-out iterations-to-success (the paper's measure, on tasks never trained on): the same
-    adaptation runs this many iterations (at least ``heldout_iterations`` + 1); 0: not measured."""
+    heldout_budget: Optional[int] = None
+    """Cap of the held-out iterations-to-success (on tasks never trained on): the same adaptation runs up to this
+    many iterations (at least ``heldout_iterations`` + 1); 0: not measured; none: the family's default
+    (HELDOUT_BUDGET: 50 on point_goal, 0 on the MuJoCo families and MetaWorld)."""
     learnt_eval: str = "chunk"
     """When the policy is evaluated on every task learnt so far (success rate and return: forgetting, average
     performance): chunk (after every chunk of tasks) or end (after the last task only). Each task is also
@@ -119,17 +127,28 @@ class EvalConfig:
     method's episodes per iteration (num_trajectories)."""
 
     def __post_init__(self):
+        check_finite_fields(self)
         check_field(self.backward_tasks >= 0, "backward_tasks", self.backward_tasks, "an integer >= 0")
         check_field(self.heldout_iterations >= 0, "heldout_iterations", self.heldout_iterations,
                         "an integer >= 0")
-        check_field(self.heldout_budget >= 0, "heldout_budget", self.heldout_budget, "an integer >= 0 (0: off)")
+        check_field(self.heldout_budget is None or self.heldout_budget >= 0, "heldout_budget", self.heldout_budget,
+                    "an integer >= 0 (0: off) or none (the family's default)")
         check_field(self.learnt_eval in LEARNT_EVAL, "learnt_eval", self.learnt_eval, ", ".join(LEARNT_EVAL))
         check_field(self.learnt_episodes >= 0, "learnt_episodes", self.learnt_episodes,
                     "an integer >= 0 (0: the method's num_trajectories)")
 
+    def resolve(self, family: str) -> "EvalConfig":
+        """This config with the family's defaults filled in (``heldout_budget``): what a run uses and records."""
+        if self.heldout_budget is not None:
+            return self
+        return dataclasses.replace(self, heldout_budget=HELDOUT_BUDGET.get(family, HELDOUT_BUDGET[None]))
+
     @property
     def heldout_run(self) -> int:
         """Iterations of each held-out adaptation run."""
+        if self.heldout_budget is None:
+            raise ValueError("EvalConfig.heldout_budget is none: resolve the config for a family first "
+                             "(EvalConfig.resolve)")
         return max(self.heldout_iterations + 1, self.heldout_budget)
 
     def episodes(self, method: Method) -> int:
@@ -197,34 +216,63 @@ def _task_at(sequence, i):
     return jax.tree.map(lambda x: jax.lax.dynamic_index_in_dim(x, i, keepdims=False), sequence)
 
 
+def learn_at(method: Method, state, sequence, i):
+    """Learns the task at position ``i`` (i32[]) of ``sequence`` from ``state``: (state, TaskMetrics). The
+    runner's ``learn`` program (one task; the host loops over positions)."""
+    return jax.jit(method.learn_task)(state, _task_at(sequence, i))
+
+
+class TaskEvaluation(NamedTuple):
+    """The evaluations right after the task at position i is learnt (``evaluate_task``); the fields of
+    ``ChunkMetrics`` of that position but ``task``."""
+
+    backward_returns: jax.Array
+    backward_valid: jax.Array
+    backward_success: jax.Array
+    learnt: Evaluation
+
+
+def evaluate_task(method: Method, eval_config: EvalConfig, state, sequence, i, eval_key) -> TaskEvaluation:
+    """The evaluations of ``state``, the state right after learning the task at position ``i`` (i32[]) of
+    ``sequence``: backward transfer on the ``eval_config.backward_tasks`` previous tasks (fresh episodes from
+    ``fold_in(fold_in(eval_key, i), d)``) and the learnt task itself (``learnt_key``). Nothing is kept. The
+    runner's ``evaluate_task`` program, run after each ``learn`` program."""
+    k = eval_config.backward_tasks
+    trajectories = base.collection(method.config).num_trajectories
+    prev = i - 1 - jnp.arange(k)
+    keys = jax.vmap(lambda d: jax.random.fold_in(jax.random.fold_in(eval_key, i), d))(jnp.arange(k))
+
+    def back(j, key):
+        j = jnp.maximum(j, 0)  # the rollout keeps ``key`` (the same stream as before policy_for existed)
+        return _evaluate(method, state, j, _task_at(sequence, j), key, trajectories)
+
+    returns, success = jax.vmap(back)(prev, keys)
+    now = _evaluate(method, state, i, _task_at(sequence, i), learnt_key(eval_key, i), eval_config.episodes(method))
+    return TaskEvaluation(returns, prev >= 0, success, Evaluation(*now, jnp.bool_(True)))
+
+
+def chunk_metrics(metrics: TaskMetrics, evaluation: TaskEvaluation) -> ChunkMetrics:
+    """The ChunkMetrics of one position from its TaskMetrics and TaskEvaluation."""
+    return ChunkMetrics(metrics, evaluation.backward_returns, evaluation.backward_valid, evaluation.backward_success,
+                        evaluation.learnt)
+
+
 def run_chunk(method: Method, eval_config: EvalConfig, state, sequence, start, chunk: int, eval_key):
-    """Learns tasks ``start … start + chunk − 1`` of ``sequence`` (a task pytree [num_tasks]) from ``state``.
+    """Learns tasks ``start … start + chunk − 1`` of ``sequence`` (a task pytree [num_tasks]) from ``state``, each
+    followed by its evaluations (``learn_at``, ``evaluate_task``), as one traced function.
 
     Positions past the end of the sequence are skipped (a ``lax.cond`` on ``start``, which must not be
     batched), so a sequence of any length runs through one compiled chunk program. ``eval_key`` seeds the
     evaluation rollouts only: the method's own random stream is the same with or without evaluation, and with
-    any chunking. Returns (state, ChunkMetrics).
+    any chunking. Returns (state, ChunkMetrics). (The runner runs the two parts as programs of their own, one
+    task at a time: ``jcomps.experiment.MethodProgram``.)
     """
     num_tasks = jax.tree.leaves(sequence)[0].shape[0]
     check_capacity(method, num_tasks)
-    learn = jax.jit(method.learn_task)
-    k = eval_config.backward_tasks
-    episodes = eval_config.episodes(method)
-    trajectories = base.collection(method.config).num_trajectories
 
     def do(state, i):
-        new_state, metrics = learn(state, _task_at(sequence, i))
-        prev = i - 1 - jnp.arange(k)
-        keys = jax.vmap(lambda d: jax.random.fold_in(jax.random.fold_in(eval_key, i), d))(jnp.arange(k))
-
-        def back(j, key):
-            j = jnp.maximum(j, 0)  # the rollout keeps ``key`` (the same stream as before policy_for existed)
-            return _evaluate(method, new_state, j, _task_at(sequence, j), key, trajectories)
-
-        returns, success = jax.vmap(back)(prev, keys)
-        now = _evaluate(method, new_state, i, _task_at(sequence, i), learnt_key(eval_key, i), episodes)
-        learnt = Evaluation(*now, jnp.bool_(True))
-        return new_state, ChunkMetrics(metrics, returns, prev >= 0, success, learnt)
+        new_state, metrics = learn_at(method, state, sequence, i)
+        return new_state, chunk_metrics(metrics, evaluate_task(method, eval_config, new_state, sequence, i, eval_key))
 
     def body(state, c):
         i = start + c
@@ -272,10 +320,33 @@ class HeldoutMetrics(NamedTuple):
     solved: jax.Array
 
 
-def heldout_adaptation(method: Method, eval_config: EvalConfig, state, heldout_tasks, rng) -> HeldoutMetrics:
-    """Meta-test: PPO from the state's policy on every held-out task for ``eval_config.heldout_run`` iterations,
-    no early stop, nothing kept (the state is not changed): the return curve and iterations-to-success. A method
-    with its own meta-test (``Method.adapt``; PEARL's adapts by inference) runs that instead of PPO."""
+def heldout_shapes(eval_config: EvalConfig, family: str, num_heldout: int, num_tasks: int):
+    """The shapes (``jax.ShapeDtypeStruct``) of one member's (HeldoutMetrics, learnt Evaluation) of
+    ``heldout_adaptation`` and ``learnt_tasks`` without tracing them (the runner needs them before those programs
+    are compiled; a test checks them against the traced functions)."""
+    curve = eval_config.heldout_iterations + 1
+    f32 = lambda *shape: jax.ShapeDtypeStruct(shape, jnp.float32)  # noqa: E731
+    held = HeldoutMetrics(f32(num_heldout, curve), f32(num_heldout, curve),
+                          jax.ShapeDtypeStruct((num_heldout,), jnp.int32), jax.ShapeDtypeStruct((num_heldout,), bool))
+    return held, Evaluation(f32(num_tasks), f32(num_tasks), jax.ShapeDtypeStruct((num_tasks,), bool))
+
+
+def task_evaluation_shapes(eval_config: EvalConfig) -> TaskEvaluation:
+    """The shapes of one member's ``evaluate_task`` output, without tracing it."""
+    k = eval_config.backward_tasks
+    f32 = lambda *shape: jax.ShapeDtypeStruct(shape, jnp.float32)  # noqa: E731
+    return TaskEvaluation(f32(k), jax.ShapeDtypeStruct((k,), bool), f32(k),
+                          Evaluation(f32(), f32(), jax.ShapeDtypeStruct((), bool)))
+
+
+def heldout_adaptation(method: Method, eval_config: EvalConfig, state, heldout_tasks, rng,
+                       progress_fn: Optional[ProgressFn] = None) -> HeldoutMetrics:
+    """Meta-test: PPO from the state's policy on every held-out task for ``eval_config.heldout_run`` iterations
+    (stopping early only once the return curve is complete and the task solved), nothing kept (the state is not
+    changed): the return curve and iterations-to-success. A method with its own meta-test (``Method.adapt``;
+    PEARL's adapts by inference) runs that instead of PPO. ``progress_fn``, if given, gets the PPO adaptation's
+    ``{"heldout_task", "heldout_iteration", "success_rate", "mean_return"}`` after every iteration."""
+    eval_config = eval_config.resolve(method.family.name)
     curve = eval_config.heldout_iterations + 1
     measured = eval_config.heldout_budget > 0
     n = jax.tree.leaves(heldout_tasks)[0].shape[0]
@@ -291,10 +362,15 @@ def heldout_adaptation(method: Method, eval_config: EvalConfig, state, heldout_t
     optimizer = ppo.make_optimizer(config)
     params = state.params
 
-    def one(task, key):
+    def one(task, key, j):
+        report = None
+        if progress_fn is not None:
+            report = lambda m: progress_fn({"heldout_task": j, "heldout_iteration": m["iteration"],  # noqa: E731
+                                            "success_rate": m["success_rate"], "mean_return": m["mean_return"]})
+        # Iterations after the curve's end and after the first success change nothing reported: left unrun.
         out = ppo.rl_step(config, method.family, params, optimizer.init(params), task, key, stop_at_threshold=False,
-                          budget=eval_config.heldout_run)
+                          budget=eval_config.heldout_run, run_at_least=curve, progress_fn=report)
         return HeldoutMetrics(out.metrics.mean_return[:curve], out.metrics.success_rate[:curve],
                               jnp.where(measured, out.iterations, 0).astype(jnp.int32), out.solved & measured)
 
-    return jax.vmap(one)(heldout_tasks, jax.random.split(rng, n))
+    return jax.vmap(one)(heldout_tasks, jax.random.split(rng, n), jnp.arange(n, dtype=jnp.int32))

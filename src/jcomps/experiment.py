@@ -42,7 +42,7 @@ from jax.sharding import PartitionSpec as P
 
 from jcomps import continual, envs, grid as grids, methods, progress, results
 from jcomps.checkpoint import Checkpoints, RunError, record, unflatten
-from jcomps.numerics import check_field
+from jcomps.numerics import check_field, check_finite_fields
 
 
 @dataclasses.dataclass(frozen=True)
@@ -65,6 +65,7 @@ class RunConfig:
     """Tasks per compiled chunk; a checkpoint is written after every chunk."""
 
     def __post_init__(self):
+        check_finite_fields(self)
         check_field(self.family in envs.FAMILIES, "family", self.family, ", ".join(envs.FAMILIES))
         check_field(self.sequence in envs.SEQUENCE_KINDS, "sequence", self.sequence, ", ".join(envs.SEQUENCE_KINDS))
         check_field(len(self.methods) >= 1 and len(set(self.methods)) == len(self.methods), "methods", self.methods,
@@ -232,44 +233,72 @@ def eval_keys(seeds: list[int], purpose: int) -> jax.Array:
     return _salted(seeds, EVAL_SALT, purpose)
 
 
+PARTS = ("init", "learn", "evaluate_task", "heldout")
+"""The compiled programs of a method (``MethodProgram``), in the order a run first needs them."""
+
+PART_NAMES = {"init": "init", "learn": "learning", "evaluate_task": "per-task evaluation",
+              "heldout": "held-out meta-test and learnt-task evaluation"}
+"""What each program is called in progress lines."""
+
+
 class MethodProgram:
-    """The compiled programs of one method: init, one chunk of tasks, the evaluations after a chunk (``heldout``:
-    held-out adaptation and the learnt tasks' evaluation, ``continual.learnt_tasks``); members sharded.
+    """The compiled programs of one method, members sharded over the devices (``PARTS``):
+
+    - ``init``: the members' initial states;
+    - ``learn``: learns the task at one position of the sequence (``continual.learn_at``); the host loops over
+      positions, one program for every task;
+    - ``evaluate_task``: the evaluations right after a task is learnt (backward transfer, the learnt task itself:
+      ``continual.evaluate_task``);
+    - ``heldout``: after a chunk of tasks, the held-out adaptation and the learnt tasks' evaluation
+      (``continual.learnt_tasks``).
+
+    Each holds the simulator once at most, so that the program on the critical path (``learn``) compiles alone and
+    the evaluation programs can compile while the first task trains (``compile``: ahead of time, timed).
 
     ``make(hparams, progress_fn)`` makes the method from one member's dict of traced hyperparameters (empty
     without traced grid axes) and progress hook; it runs inside each traced function, so every member learns, is
     initialised and is evaluated with its own values. Every program takes ``hparams``, a dict of f32[members]
-    arrays (default: none). ``traces`` counts how often each program was traced (once each, however many chunks
-    run). While a chunk runs, every member's progress metrics (``jcomps.progress``) reach ``receiver`` (a host
+    arrays (default: none). ``traces`` counts how often each program was traced (once each, however many tasks
+    run). While a program runs, every member's progress metrics (``jcomps.progress``) reach ``receiver`` (a host
     function of one dict, set by whoever runs the program; None: dropped) with the member's index as ``member``.
     """
 
     def __init__(self, make: Callable[..., methods.Method], eval_config: continual.EvalConfig, chunk: int,
                  devices: int):
-        self.make, self.chunk = make, chunk
+        self.make, self.chunk, self.eval_config = make, chunk, eval_config
         self.receiver: Optional[Callable[[dict], None]] = None
-        self.traces: dict = {"init": 0, "run_chunk": 0, "heldout": 0}
+        self.traces: dict = dict.fromkeys(PARTS, 0)
+        self.compiled: dict = {}
+        """Part -> its ``jax.stages.Compiled``, once ``compile`` made it."""
         mesh = jax.make_mesh((devices,), ("seed",), devices=jax.devices()[:devices])
         seed = P("seed")
 
-        def run_chunk(states, sequences, start, eval_keys, seed_index, hparams):
-            self.traces["run_chunk"] += 1
-            def fn(s, q, k, i, h):
+        def learn(states, sequences, i, seed_index, hparams):
+            self.traces["learn"] += 1
+            continual.check_capacity(make({}, None), jax.tree.leaves(sequences)[0].shape[1])
+
+            def fn(s, q, m, h):
                 # The hook closes over the member's (traced) index: the method reports its task, we add who it is.
                 report = progress.host(self._receive)
-                return continual.run_chunk(make(h, progress.with_fields(report, member=i)), eval_config, s, q, start,
-                                           chunk, k)
+                return continual.learn_at(make(h, progress.with_fields(report, member=m)), s, q, i)
 
-            return jax.vmap(fn)(states, sequences, eval_keys, seed_index, hparams)
+            return jax.vmap(fn)(states, sequences, seed_index, hparams)
 
-        def heldout(states, tasks, keys, sequences, learnt, eval_keys, hparams):
+        def evaluate_task(states, sequences, i, eval_keys, hparams):
+            self.traces["evaluate_task"] += 1
+            return jax.vmap(lambda s, q, k, h: continual.evaluate_task(make(h, None), eval_config, s, q, i, k))(
+                states, sequences, eval_keys, hparams)
+
+        def heldout(states, tasks, keys, sequences, learnt, eval_keys, seed_index, hparams):
             self.traces["heldout"] += 1
-            def fn(s, k, q, e, h):
+
+            def fn(s, k, q, e, m, h):
                 method = make(h, None)
-                return (continual.heldout_adaptation(method, eval_config, s, tasks, k),
+                report = progress.with_fields(progress.host(self._receive), member=m)
+                return (continual.heldout_adaptation(method, eval_config, s, tasks, k, report),
                         continual.learnt_tasks(method, eval_config, s, q, learnt, e))
 
-            return jax.vmap(fn)(states, keys, sequences, eval_keys, hparams)
+            return jax.vmap(fn)(states, keys, sequences, eval_keys, seed_index, hparams)
 
         def init(rngs, hparams):
             self.traces["init"] += 1
@@ -281,26 +310,66 @@ class MethodProgram:
                                                        check_vma=False))
         # Initialisation runs on one device (member by member, see continual.init_seeds), then is split over them.
         self._init = jax.jit(init)
-        self._run_chunk = shard(run_chunk, (seed, seed, P(), seed, seed, seed))
-        self._heldout = shard(heldout, (seed, P(), seed, seed, P(), seed, seed))
+        self._learn = shard(learn, (seed, seed, P(), seed, seed))
+        self._evaluate_task = shard(evaluate_task, (seed, seed, P(), seed, seed))
+        self._heldout = shard(heldout, (seed, P(), seed, seed, P(), seed, seed, seed))
         self.sharding = jax.sharding.NamedSharding(mesh, seed)
 
     def _receive(self, metrics: dict):
         if self.receiver is not None:
             self.receiver(metrics)
 
+    def compile(self, part: str, *args, notify: Optional[Callable[[dict], None]] = None):
+        """Compiles ``part`` (one of ``PARTS``) ahead of time for ``args`` (arrays or ``jax.ShapeDtypeStruct``s
+        with their shardings) unless done; ``notify`` gets ``{"event": "compiling", "part"}`` before and
+        ``{"event": "compiled", "part", "seconds", "trace_seconds"}`` after (from the persistent compile cache
+        when it holds the program: then in about a second). Returns the ``jax.stages.Compiled``."""
+        if part not in self.compiled:
+            notify = notify or _silent
+            notify({"event": "compiling", "part": part})
+            start = time.time()
+            traced = getattr(self, "_" + part).trace(*args)
+            traced_at = time.time()
+            self.compiled[part] = traced.lower().compile()
+            notify({"event": "compiled", "part": part, "seconds": time.time() - start,
+                    "trace_seconds": traced_at - start})
+        return self.compiled[part]
+
+    def _call(self, part, *args):
+        fn = self.compiled.get(part)
+        return fn(*args) if fn is not None else getattr(self, "_" + part)(*args)
+
     def init(self, rngs, hparams: Optional[dict] = None):
         """The initial states of the members (keys ``rngs``), placed on the devices."""
         host = jax.device_put(jax.device_get((rngs, hparams or {})), jax.devices()[0])
         return self.put(jax.device_get(self._init(*host)))
 
-    def run_chunk(self, states, sequences, start, eval_keys, seed_index, hparams: Optional[dict] = None):
-        return self._run_chunk(states, sequences, start, eval_keys, seed_index, hparams or {})
+    def learn(self, states, sequences, i, seed_index, hparams: Optional[dict] = None):
+        """(states, TaskMetrics [members]) after learning the task at position ``i`` (i32[]) of ``sequences``."""
+        return self._call("learn", states, sequences, i, seed_index, hparams or {})
 
-    def heldout(self, states, tasks, keys, sequences, learnt, eval_keys, hparams: Optional[dict] = None):
+    def evaluate_task(self, states, sequences, i, eval_keys, hparams: Optional[dict] = None):
+        """``continual.TaskEvaluation`` [members] of ``states``, right after learning the task at position ``i``."""
+        return self._call("evaluate_task", states, sequences, i, eval_keys, hparams or {})
+
+    def run_chunk(self, states, sequences, start, eval_keys, seed_index, hparams: Optional[dict] = None):
+        """(states, ChunkMetrics [members, chunk]): ``learn`` then ``evaluate_task`` for the ``chunk`` positions
+        from ``start`` (an int); positions past the end of the sequence are not run and report zeros."""
+        num_tasks = jax.tree.leaves(sequences)[0].shape[1]
+        out = []
+        for i in range(int(start), int(start) + self.chunk):
+            if i >= num_tasks:
+                out.append(jax.tree.map(jnp.zeros_like, out[-1]))
+                continue
+            states, metrics = self.learn(states, sequences, np.int32(i), seed_index, hparams)
+            out.append(continual.chunk_metrics(metrics, self.evaluate_task(states, sequences, np.int32(i),
+                                                                           eval_keys, hparams)))
+        return states, jax.tree.map(lambda *x: jnp.stack(x, axis=1), *out)
+
+    def heldout(self, states, tasks, keys, sequences, learnt, eval_keys, seed_index, hparams: Optional[dict] = None):
         """(HeldoutMetrics on ``tasks`` with ``keys``, Evaluation [members, num_tasks] of the ``learnt`` (i32[]) first
         tasks of ``sequences`` with ``eval_keys``, the backward-transfer keys)."""
-        return self._heldout(states, tasks, keys, sequences, learnt, eval_keys, hparams or {})
+        return self._call("heldout", states, tasks, keys, sequences, learnt, eval_keys, seed_index, hparams or {})
 
     def put(self, tree):
         """Places host arrays with a leading member axis on the devices, split along that axis."""
@@ -339,9 +408,17 @@ ProgressReceiver = Callable[[dict], None]
 """The runner's one callback to the outside world (brax's ``progress_fn``), called on the host with an event dict;
 ``event["event"]`` says which:
 
-- ``start``: a program begins (``program``, ``family``, ``sequence``, ``num_tasks``, ``seeds``, ``grid_points``,
-  ``padding``, ``devices``, ``budget``, ``chunk``, ``start_task``, ``members``: each member's name);
+- ``start``: a program begins, before anything compiles (``program``, ``family``, ``sequence``, ``num_tasks``,
+  ``seeds``, ``grid_points``, ``padding``, ``devices``, ``budget``, ``chunk``, ``start_task``: 0, ``members``:
+  each member's name);
+- ``compiling`` / ``compiled``: one of its programs (``PARTS``) is being compiled / is ready (``program``,
+  ``family``, ``method``, ``part``, ``what``: its name in words; ``compiled`` adds ``seconds`` and
+  ``trace_seconds``); ``learn`` compiles first and alone, the evaluation programs while the first task trains;
 - ``resumed``: it continues from a checkpoint (``program``, ``step``, ``tasks_done``, ``num_tasks``);
+- ``evaluating`` / ``evaluated``: the held-out meta-test and learnt-task evaluation after ``after_tasks`` tasks
+  (0: the initial policies, measured after the first chunk) begins / ends (``seconds``); in between,
+  ``heldout_iteration`` events give each member's adaptation progress (``member``, ``heldout_task``,
+  ``heldout_iteration``, ``success_rate``, ``mean_return``);
 - ``warning``: something was set aside (``message``), e.g. an unreadable checkpoint;
 - ``iteration`` / ``meta_step``: a member's progress inside a chunk (``program``, ``member``, ``task`` and the
   ``jcomps.progress`` metrics: ``iteration``, ``success_rate``, ``mean_return`` / ``meta_step``,
@@ -398,6 +475,7 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
     returns None after that many chunks of this call, as if killed.
     """
     family = envs.make(run.family)
+    eval_config = eval_config.resolve(run.family)
     points = spec.points
     real = len(points) * run.seeds
     devices = num_devices(real)
@@ -419,14 +497,36 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
     backward_keys = program.put(eval_keys(member_seed, 1))
     num_chunks = math.ceil(run.num_tasks / program.chunk)
 
-    states = program.init(method_keys(member_seed), hparams_host)
-    chunk_shapes = jax.eval_shape(program.run_chunk, states, sequences, jnp.int32(0), backward_keys, seed_index,
-                                  hparams)[1]
-    heldout_shapes = jax.eval_shape(program.heldout, states, heldout_tasks, backward_keys, sequences, jnp.int32(0),
-                                    backward_keys, hparams)
-    # Host copies of every metric of the sequence, filled chunk by chunk: [members, num_tasks, ...]; those measured
+    def notify(event: dict):
+        """Compile events of this program, as the runner's ``compiling`` / ``compiled`` events."""
+        progress_fn({**event, "program": name, "family": run.family, "method": spec.method,
+                     "what": PART_NAMES[event["part"]]})
+
+    def abstract(shapes, sharded=True):
+        """``jax.ShapeDtypeStruct``s of [members, ...] outputs, sharded as the programs make them."""
+        return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=program.sharding)
+                            if sharded else x, shapes)
+
+    member_names = [f"{points[p].key} seed {s}" for p, s in zip(member_point, member_seed)]
+    progress_fn({"event": "start", "program": name, "family": run.family, "sequence": run.sequence,
+                 "num_tasks": run.num_tasks, "seeds": run.seeds, "grid_points": len(points), "padding": padded - real,
+                 "devices": devices, "budget": methods.collection(spec.config).budget_for(family),
+                 "chunk": program.chunk, "start_task": 0, "members": member_names})
+    init_keys = method_keys(member_seed)
+    states = program.init(init_keys, hparams_host)
+    # The learning program is the one a run waits for: it compiles first, alone.
+    position = np.int32(0)
+    learn_args = (states, sequences, position, seed_index, hparams)
+    program.compile("learn", *learn_args, notify=notify)
+    task_shapes = program.compiled["learn"].out_info[1]
+    member = lambda shapes: jax.tree.map(  # noqa: E731
+        lambda x: jax.ShapeDtypeStruct((padded,) + x.shape, x.dtype), shapes)
+    chunk_shapes = continual.chunk_metrics(task_shapes, member(continual.task_evaluation_shapes(eval_config)))
+    heldout_shapes = member(continual.heldout_shapes(eval_config, run.family, jax.tree.leaves(heldout_tasks)[0].shape[0],
+                                                     run.num_tasks))
+    # Host copies of every metric of the sequence, filled task by task: [members, num_tasks, ...]; those measured
     # at the start and after every chunk (held-out adaptation, learnt tasks): [members, num_chunks + 1, ...].
-    per_task = jax.tree.map(lambda x: np.zeros((x.shape[0], run.num_tasks) + x.shape[2:], x.dtype), chunk_shapes)
+    per_task = jax.tree.map(lambda x: np.zeros((x.shape[0], run.num_tasks) + x.shape[1:], x.dtype), chunk_shapes)
     heldout = jax.tree.map(lambda x: np.zeros((x.shape[0], num_chunks + 1) + x.shape[1:], x.dtype), heldout_shapes)
 
     checkpoints = Checkpoints(os.path.join(out, "checkpoints", spec.directory))
@@ -464,25 +564,25 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
         for key, raw in entry_raws(next_chunk, seconds).items():
             results.save_partial(out, key, raw)
 
-    member_names = [f"{points[p].key} seed {s}" for p, s in zip(member_point, member_seed)]
-    progress_fn({"event": "start", "program": name, "family": run.family, "sequence": run.sequence,
-                 "num_tasks": run.num_tasks, "seeds": run.seeds, "grid_points": len(points), "padding": padded - real,
-                 "devices": devices, "budget": methods.collection(spec.config).budget_for(family),
-                 "chunk": program.chunk, "start_task": next_chunk * program.chunk, "members": member_names})
     start_time = time.time()
+    heldout_abstract = (abstract(states), heldout_tasks, abstract(backward_keys), abstract(sequences), np.int32(0),
+                        abstract(backward_keys), abstract(seed_index), abstract(hparams))
 
-    def evaluate(states, column: int, learnt: int, keys):
-        """The evaluations of ``states`` (``learnt``: the tasks to evaluate) into column ``column`` of ``heldout``."""
-        out_h = program.heldout(states, heldout_tasks, program.put(keys), sequences, jnp.int32(learnt), backward_keys,
-                                hparams)
+    def evaluate(states, column: int, learnt: int, keys, after: int):
+        """The evaluations of ``states`` (``learnt``: the tasks to evaluate) into column ``column`` of ``heldout``
+        (``after``: the tasks learnt, for the progress lines)."""
+        program.compile("heldout", *heldout_abstract, notify=notify)
+        progress_fn({"event": "evaluating", "program": name, "after_tasks": after, "learnt": learnt})
+        began = time.time()
+        out_h = jax.device_get(program.heldout(states, heldout_tasks, program.put(keys), sequences, np.int32(learnt),
+                                               backward_keys, seed_index, hparams))
         jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), column), np.asarray(src)), heldout, out_h)
+        progress_fn({"event": "evaluated", "program": name, "after_tasks": after, "seconds": time.time() - began})
         return out_h
 
-    if next_chunk == 0:
-        evaluate(states, 0, 0, eval_keys(member_seed, 1000))
-
     def receive(metrics: dict):
-        kind = next((k for k in ("iteration", "meta_step", "compress_iteration") if k in metrics), "meta_step")
+        kind = next((k for k in ("iteration", "meta_step", "compress_iteration", "heldout_iteration")
+                     if k in metrics), "meta_step")
         progress_fn({"event": kind, "program": name, **{k: v.item() for k, v in metrics.items()}})
 
     seeds = list(range(run.seed, run.seed + run.seeds))
@@ -491,15 +591,25 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
     try:
         for c in range(next_chunk, num_chunks):
             start = c * program.chunk
-            states, metrics = program.run_chunk(states, sequences, jnp.int32(start), backward_keys, seed_index,
-                                                hparams)
-            metrics = jax.device_get(metrics)
             stop = min(start + program.chunk, run.num_tasks)
-            jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), slice(start, stop)), src[:, :stop - start]),
-                         per_task, metrics)
+            task_metrics = []
+            for i in range(start, stop):
+                states, learnt_metrics = program.learn(states, sequences, np.int32(i), seed_index, hparams)
+                # Dispatched without waiting: the evaluation programs compile while the task trains.
+                program.compile("evaluate_task", states, sequences, np.int32(i), backward_keys, hparams,
+                                notify=notify)
+                evaluation = program.evaluate_task(states, sequences, np.int32(i), backward_keys, hparams)
+                program.compile("heldout", *heldout_abstract, notify=notify)
+                task_metrics.append(continual.chunk_metrics(learnt_metrics, evaluation))
+            metrics = jax.device_get(jax.tree.map(lambda *x: jnp.stack(x, axis=1), *task_metrics))
+            jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), slice(start, stop)), src), per_task, metrics)
+            if c == 0:
+                # The held-out meta-test of the initial policies (0 tasks learnt): the same states and keys as
+                # before training, measured after the first chunk, off the path to the first iteration.
+                evaluate(program.init(init_keys, hparams_host), 0, 0, eval_keys(member_seed, 1000), 0)
             # The learnt tasks after every chunk, or (learnt_eval=end) after the last one only.
             learnt = stop if eval_config.learnt_eval == "chunk" or stop == run.num_tasks else 0
-            _, learnt_now = evaluate(states, c + 1, learnt, eval_keys(member_seed, 1001 + c))
+            _, learnt_now = evaluate(states, c + 1, learnt, eval_keys(member_seed, 1001 + c), stop)
             elapsed = seconds + time.time() - start_time
             checkpoints.save(c + 1, record(states, per_task, heldout, c + 1, elapsed))
             if c + 1 < num_chunks:  # what a report of the unfinished run shows (report.py --partial)
@@ -530,6 +640,7 @@ def run(out: str, run_config: RunConfig, eval_config: continual.EvalConfig, meth
     """Runs every method of ``run_config`` into ``out`` (resuming where it stopped), each at every point of the
     hyperparameter ``grid`` (``jcomps.grid``; empty: no grid); returns RawResults by results entry key. Events go
     to ``progress_fn`` (``ProgressReceiver``); compiled programs are kept in ``programs`` (default: a fresh cache)."""
+    eval_config = eval_config.resolve(run_config.family)
     open_run_dir(out, describe(run_config, eval_config, method_configs, grid, overrides), resume)
     programs = Programs() if programs is None else programs
     raws = {}

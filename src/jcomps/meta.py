@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import optax
 
 from jcomps import buffers, networks, vtrace
-from jcomps.numerics import all_finite, check_field, keep_if_finite, masked_mean
+from jcomps.numerics import all_finite, check_field, check_finite_fields, keep_if_finite, masked_mean
 from jcomps.progress import ProgressFn
 
 
@@ -92,6 +92,7 @@ class MetaConfig:
     """Fields that may hold traced scalars (a hyperparameter-grid axis inside one compiled program)."""
 
     def __post_init__(self):
+        check_finite_fields(self)
         for name in ("outer_learning_rate", "inner_learning_rate", "value_fit_learning_rate", "rho_bar", "c_bar",
                      "pg_rho_bar"):
             check_field(getattr(self, name) > 0, name, getattr(self, name), "a number > 0")

@@ -17,6 +17,20 @@ def check_field(ok: bool, field: str, value, allowed: str):
         raise ValueError(f"invalid config value {field}={value!r}; allowed: {allowed}")
 
 
+def check_finite_fields(config) -> None:
+    """Raises ValueError naming the first field of the config dataclass ``config`` (nested configs are checked by
+    their own ``__post_init__``) that holds a NaN or an infinity, alone or inside a tuple: no config field takes
+    one (an infinite learning rate would make every update non-finite, and every update would then be skipped)."""
+    import dataclasses
+
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        values = value if isinstance(value, tuple) else (value,)
+        for v in values:
+            if isinstance(v, (float, np.floating)) and not math.isfinite(v):
+                raise ValueError(f"invalid config value {f.name}={value!r}; allowed: a finite number")
+
+
 def masked_mean(x, mask):
     """Mean of ``x`` over entries where ``mask`` is 1 (0 when the mask is empty)."""
     return jnp.sum(x * mask) / jnp.maximum(jnp.sum(mask), 1.0)

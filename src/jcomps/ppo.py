@@ -22,7 +22,7 @@ import optax
 
 from jcomps import acting, networks
 from jcomps.envs.base import Family
-from jcomps.numerics import all_finite, check_field, keep_if_finite, masked_mean
+from jcomps.numerics import all_finite, check_field, check_finite_fields, keep_if_finite, masked_mean
 from jcomps.progress import ProgressFn
 
 
@@ -75,6 +75,7 @@ class PPOConfig:
     field changes shapes or Python control flow."""
 
     def __post_init__(self):
+        check_finite_fields(self)
         check_field(self.num_trajectories >= 1, "num_trajectories", self.num_trajectories, "an integer >= 1")
         check_field(self.num_updates >= 0, "num_updates", self.num_updates, "an integer >= 0")
         check_field(self.minibatch_size >= 0, "minibatch_size", self.minibatch_size,
@@ -298,14 +299,16 @@ ObserveFn = Callable[[Any, acting.Trajectory, jax.Array], Any]
 def rl_step(config: PPOConfig, family: Family, params: networks.ActorCriticParams, opt_state, task,
             rng: jax.Array, observe: Optional[ObserveFn] = None, aux: Any = None,
             progress_fn: Optional[ProgressFn] = None, stop_at_threshold: bool = True,
-            budget: Optional[int] = None) -> RLStepResult:
+            budget: Optional[int] = None, run_at_least: Optional[int] = None) -> RLStepResult:
     """PPO on ``task`` until the success rate reaches ``family.success_threshold`` or the budget is spent.
 
     ``observe(aux, trajectory, iteration) -> aux``, if given, sees every iteration's batch (the experience
     stores of CoMPS are built this way) and threads ``aux`` through the loop. ``progress_fn``
     (``jcomps.progress``), if given, gets ``{"iteration", "success_rate", "mean_return"}`` after every iteration.
-    ``stop_at_threshold=False`` runs the whole budget (fixed-budget adaptation); ``budget``
-    overrides the config's. Jittable; ``config`` and ``family`` are static.
+    ``stop_at_threshold=False`` runs the whole budget (fixed-budget adaptation), or with ``run_at_least`` stops
+    once the threshold has been reached and at least that many iterations ran (the metrics of the iterations run
+    are the same either way; later ones are left unrun: ``valid`` False, zeros). ``budget`` overrides the
+    config's. Jittable; ``config`` and ``family`` are static.
     """
     budget = config.budget_for(family) if budget is None else budget
     optimizer = make_optimizer(config)
@@ -321,14 +324,18 @@ def rl_step(config: PPOConfig, family: Family, params: networks.ActorCriticParam
         aux: Any
 
     def cond(c: Carry):
-        return ((~c.solved) | (not stop_at_threshold)) & (c.it < budget)
+        if stop_at_threshold:
+            return (~c.solved) & (c.it < budget)
+        if run_at_least is None:
+            return c.it < budget
+        return ((~c.solved) | (c.it < run_at_least)) & (c.it < budget)
 
     def body(c: Carry):
         rng, k_roll, k_upd = jax.random.split(c.rng, 3)
         traj = acting.rollout(family, c.params.policy, task, k_roll, config.num_trajectories)
         success_rate = family.success_rate(traj.success, traj.valid)
         mean_return = jnp.mean(jnp.sum(traj.reward, axis=0))
-        solved = success_rate >= family.success_threshold
+        solved = c.solved | (success_rate >= family.success_threshold)  # reached at this or an earlier iteration
         if progress_fn is not None:
             progress_fn({"iteration": c.it + 1, "success_rate": success_rate, "mean_return": mean_return})
         rollout_finite = all_finite((traj.obs, traj.reward))

@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 
 from jcomps import buffers, meta, networks, ppo
-from jcomps.numerics import check_field, concrete_max
+from jcomps.numerics import check_field, check_finite_fields, concrete_max
 from jcomps.progress import ProgressFn, with_fields
 from jcomps.envs.base import Family
 from jcomps.methods.base import Method, TaskMetrics
@@ -45,6 +45,7 @@ class CoMPSConfig:
     """Start each task's RL step with a fresh PPO Adam state."""
 
     def __post_init__(self):
+        check_finite_fields(self)
         check_field(self.max_tasks >= 1, "max_tasks", self.max_tasks, "an integer >= 1")
         check_field(self.num_skilled >= 1, "num_skilled", self.num_skilled, "an integer >= 1")
         check_field(self.num_offpolicy >= 1, "num_offpolicy", self.num_offpolicy, "an integer >= 1")

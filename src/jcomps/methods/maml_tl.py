@@ -37,7 +37,7 @@ import optax
 from jcomps import acting, networks, ppo
 from jcomps.envs.base import Family
 from jcomps.methods.base import Method, TaskMetrics
-from jcomps.numerics import all_finite, check_field, keep_if_finite, masked_mean
+from jcomps.numerics import all_finite, check_field, check_finite_fields, keep_if_finite, masked_mean
 from jcomps.progress import ProgressFn, with_fields
 
 
@@ -67,6 +67,7 @@ class MAMLTLConfig:
     """Fields that may hold traced scalars (a hyperparameter-grid axis)."""
 
     def __post_init__(self):
+        check_finite_fields(self)
         check_field(self.inner_learning_rate > 0, "inner_learning_rate", self.inner_learning_rate, "a number > 0")
         check_field(self.inner_objective in ("vpg", "lvc"), "inner_objective", self.inner_objective,
                     "'vpg' or 'lvc'")

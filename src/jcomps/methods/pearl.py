@@ -56,7 +56,7 @@ from brax.training.agents.sac import networks as sac_networks
 from jcomps import acting, buffers, networks, ppo
 from jcomps.envs.base import Family
 from jcomps.methods.base import Method, TaskMetrics
-from jcomps.numerics import all_finite, check_field, keep_if_finite
+from jcomps.numerics import all_finite, check_field, check_finite_fields, keep_if_finite
 from jcomps.progress import ProgressFn, with_fields
 
 
@@ -140,6 +140,7 @@ class PEARLConfig:
     """Fields that may hold traced scalars (a hyperparameter-grid axis)."""
 
     def __post_init__(self):
+        check_finite_fields(self)
         positive_int = "an integer >= 1"
         for name in ("num_trajectories", "minibatch_size", "meta_batch", "context_size", "latent_size",
                      "buffer_size", "max_tasks"):

@@ -40,7 +40,7 @@ import optax
 from jcomps import acting, networks, ppo
 from jcomps.envs.base import Family
 from jcomps.methods.base import Method, TaskMetrics
-from jcomps.numerics import all_finite, check_field, keep_if_finite
+from jcomps.numerics import all_finite, check_field, check_finite_fields, keep_if_finite
 from jcomps.progress import ProgressFn, with_fields
 
 
@@ -77,6 +77,7 @@ class PNCConfig:
     """Fields that may hold traced scalars (a hyperparameter-grid axis)."""
 
     def __post_init__(self):
+        check_finite_fields(self)
         check_field(0 < self.compress_fraction < 1, "compress_fraction", self.compress_fraction,
                     "a number in (0, 1)")
         check_field(self.distill_learning_rate > 0, "distill_learning_rate", self.distill_learning_rate,

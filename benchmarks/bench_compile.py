@@ -1,0 +1,145 @@
+"""Start-up cost of a run: per compiled program, the time to trace, lower and compile it; end to end, the time
+from starting ``run_sequence.py`` to its first training iteration, cold and from the compile cache.
+
+``programs`` mode (the default) builds the runner's programs for each family × method exactly as
+``experiments/run_sequence.py`` does with its defaults (``jcomps.experiment.Programs``: members sharded over the
+devices, chunks of ``--chunk`` tasks, the default evaluations) and times apart, for each program (``init``,
+``chunk``, ``evaluate``: the learnt tasks' evaluation, ``heldout``: the held-out meta-test):
+
+- ``trace_s``: Python tracing to a jaxpr (``jit(f).trace``);
+- ``lower_s``: lowering to StableHLO (``.lower()``);
+- ``compile_s``: XLA's compile (``.compile()``), with the persistent compile cache off;
+- ``hlo_kb``: the size of the lowered module's text; ``ops``: its StableHLO operations.
+
+``start`` mode runs ``run_sequence.py`` (``--run-args``) in a subprocess, twice with one fresh compile cache
+directory, and prints the seconds to the first training iteration's progress line (``first_iteration_s``) and to
+the end (``total_s``) of each: ``cache=cold`` then ``cache=warm``.
+
+One line per case, ``key=value`` pairs. Run it alone: compile times are CPU-bound.
+
+    python benchmarks/bench_compile.py --families cheetah_vel ant_goal --methods comps ppo_tl
+    python benchmarks/bench_compile.py --mode start --run-args "--family cheetah_vel --methods comps --num-tasks 2"
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import shlex
+import subprocess
+import sys
+import tempfile
+import time
+
+from jcomps import hostdevices
+
+
+def bench_programs(family_name: str, method: str, seeds: int, devices: int, chunk: int, num_tasks: int,
+                   programs: list[str]) -> list[str]:
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from jcomps import continual, envs, experiment, grid as grids, methods
+
+    family = envs.make(family_name)
+    config = methods.default_config(method, family)
+    eval_config = continual.EvalConfig()
+    spec, = grids.programs(method, config, ())
+    program = experiment.Programs().get(method, family_name, spec.config, eval_config, min(chunk, num_tasks),
+                                        devices)
+    member_seeds = list(range(experiment.padded_seeds(seeds, devices)))
+    values = np.stack([envs.sequence_values(family, "non-stationary", s, num_tasks) for s in member_seeds])
+    sequences = program.put(jax.tree.map(lambda x: x.reshape((len(member_seeds), num_tasks) + x.shape[1:]),
+                                         family.tasks(values.reshape(-1))))
+    keys = program.put(experiment.eval_keys(member_seeds, 1))
+    index = program.put(np.arange(len(member_seeds), dtype=np.int32))
+    rngs = experiment.method_keys(member_seeds)
+    states = program.init(rngs)
+    heldout = envs.held_out(family)
+    args = {
+        "init": (program._init, (rngs, {})),
+        "chunk": (program._run_chunk, (states, sequences, jnp.int32(0), keys, index, {})),
+        "heldout": (program._heldout, (states, heldout, keys, sequences, jnp.int32(0), keys, {})),
+    }
+    if hasattr(program, "_evaluate"):
+        args["evaluate"] = (program._evaluate, (states, sequences, jnp.int32(0), keys, {}))
+    lines = []
+    for name in programs:
+        if name not in args:
+            continue
+        fn, fn_args = args[name]
+        t0 = time.perf_counter()
+        traced = fn.trace(*fn_args)
+        t1 = time.perf_counter()
+        lowered = traced.lower()
+        t2 = time.perf_counter()
+        compiled = lowered.compile()
+        t3 = time.perf_counter()
+        text = lowered.as_text()
+        del compiled
+        ops = len(re.findall(r"^\s*(?:%\S+ = )?\"?stablehlo\.", text, re.M))
+        lines.append(f"family={family_name} method={method} program={name} seeds={seeds} devices={devices} "
+                     f"trace_s={t1 - t0:.1f} lower_s={t2 - t1:.1f} compile_s={t3 - t2:.1f} "
+                     f"total_s={t3 - t0:.1f} hlo_kb={len(text) // 1024} ops={ops}")
+        print(lines[-1], flush=True)
+    return lines
+
+
+def bench_start(run_args: str, cache: str, label: str) -> str:
+    """Runs run_sequence.py with ``run_args`` and the compile cache ``cache``; seconds to the first training
+    iteration line and to the end."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    out = tempfile.mkdtemp(prefix="bench_compile_run_")
+    command = [sys.executable, "-u", os.path.join(root, "experiments", "run_sequence.py"), *shlex.split(run_args),
+               "--out", os.path.join(out, "run"), "--compile-cache", cache]
+    start = time.perf_counter()
+    first = None
+    longest_silence, last = 0.0, start
+    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    for line in proc.stdout:
+        now = time.perf_counter()
+        longest_silence, last = max(longest_silence, now - last), now
+        sys.stderr.write(f"  [{now - start:6.1f}s] {line}")
+        if first is None and re.search(r"\] task \S+ iteration \d+", line):
+            first = now - start
+    proc.wait()
+    total = time.perf_counter() - start
+    if proc.returncode != 0:
+        raise SystemExit(f"run_sequence.py exited with {proc.returncode}")
+    first_text = "none" if first is None else f"{first:.1f}"
+    return (f"mode=start cache={label} first_iteration_s={first_text} total_s={total:.1f} "
+            f"longest_silence_s={longest_silence:.1f} args={run_args.replace(' ', '_')}")
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--mode", choices=("programs", "start"), default="programs")
+    parser.add_argument("--families", nargs="+", default=["cheetah_vel", "ant_goal"])
+    parser.add_argument("--methods", nargs="+", default=["comps", "ppo_tl"])
+    parser.add_argument("--programs", nargs="+", default=["init", "chunk", "evaluate", "heldout"])
+    parser.add_argument("--seeds", type=int, default=4)
+    parser.add_argument("--devices", type=int, default=None, help="host devices (default: one per core)")
+    parser.add_argument("--chunk", type=int, default=2)
+    parser.add_argument("--num-tasks", type=int, default=2)
+    parser.add_argument("--run-args", default="--family cheetah_vel --methods comps --num-tasks 2",
+                        help="start mode: run_sequence.py's options")
+    args = parser.parse_args()
+    if args.mode == "start":
+        cache = tempfile.mkdtemp(prefix="bench_compile_cache_")
+        for label in ("cold", "warm"):
+            print(bench_start(args.run_args, cache, label), flush=True)
+        return
+    devices = args.devices or min(hostdevices.cores(), args.seeds)
+    hostdevices.configure(devices)
+    import jax
+
+    jax.config.update("jax_enable_compilation_cache", False)
+    for family in args.families:
+        for method in args.methods:
+            bench_programs(family, method, args.seeds, devices, args.chunk, args.num_tasks, args.programs)
+
+
+if __name__ == "__main__":
+    main()
