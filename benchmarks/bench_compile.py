@@ -3,8 +3,9 @@ from starting ``run_sequence.py`` to its first training iteration, cold and from
 
 ``programs`` mode (the default) builds the runner's programs for each family × method exactly as
 ``experiments/run_sequence.py`` does with its defaults (``jcomps.experiment.Programs``: members sharded over the
-devices, chunks of ``--chunk`` tasks, the default evaluations) and times apart, for each program (``init``,
-``chunk``, ``evaluate``: the learnt tasks' evaluation, ``heldout``: the held-out meta-test):
+devices, the default evaluations) and times apart, for each program (``jcomps.experiment.PARTS``: ``init``,
+``learn``: one task's learning, the program a run waits for, ``evaluate_task``: the evaluations after each task,
+``heldout``: the held-out meta-test and learnt tasks after each chunk):
 
 - ``trace_s``: Python tracing to a jaxpr (``jit(f).trace``);
 - ``lower_s``: lowering to StableHLO (``.lower()``);
@@ -12,18 +13,21 @@ devices, chunks of ``--chunk`` tasks, the default evaluations) and times apart, 
 - ``hlo_kb``: the size of the lowered module's text; ``ops``: its StableHLO operations.
 
 ``start`` mode runs ``run_sequence.py`` (``--run-args``) in a subprocess, twice with one fresh compile cache
-directory, and prints the seconds to the first training iteration's progress line (``first_iteration_s``) and to
-the end (``total_s``) of each: ``cache=cold`` then ``cache=warm``.
+directory, and prints the seconds to the first training iteration's progress line (``first_iteration_s``), the
+longest wait between two output lines (``longest_silence_s``) and, unless ``--until first``, to the end
+(``total_s``) of each: ``cache=cold`` then ``cache=warm`` (a second identical run, as a ``--resume`` would).
 
 One line per case, ``key=value`` pairs. Run it alone: compile times are CPU-bound.
 
     python benchmarks/bench_compile.py --families cheetah_vel ant_goal --methods comps ppo_tl
-    python benchmarks/bench_compile.py --mode start --run-args "--family cheetah_vel --methods comps --num-tasks 2"
+    python benchmarks/bench_compile.py --mode start --until first \
+        --run-args "--family cheetah_vel --methods comps --num-tasks 2"
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import re
 import shlex
@@ -35,7 +39,7 @@ import time
 from jcomps import hostdevices
 
 
-def bench_programs(family_name: str, method: str, seeds: int, devices: int, chunk: int, num_tasks: int,
+def bench_programs(family_name: str, method: str, seeds: int, devices: int, num_tasks: int,
                    programs: list[str]) -> list[str]:
     import jax
     import jax.numpy as jnp
@@ -45,10 +49,11 @@ def bench_programs(family_name: str, method: str, seeds: int, devices: int, chun
 
     family = envs.make(family_name)
     config = methods.default_config(method, family)
-    eval_config = continual.EvalConfig()
+    if hasattr(config, "max_tasks"):  # as run_sequence.py: one experience slot per task of the run
+        config = dataclasses.replace(config, max_tasks=num_tasks)
+    eval_config = continual.EvalConfig().resolve(family_name)
     spec, = grids.programs(method, config, ())
-    program = experiment.Programs().get(method, family_name, spec.config, eval_config, min(chunk, num_tasks),
-                                        devices)
+    program = experiment.Programs().get(method, family_name, spec.config, eval_config, 2, devices)
     member_seeds = list(range(experiment.padded_seeds(seeds, devices)))
     values = np.stack([envs.sequence_values(family, "non-stationary", s, num_tasks) for s in member_seeds])
     sequences = program.put(jax.tree.map(lambda x: x.reshape((len(member_seeds), num_tasks) + x.shape[1:]),
@@ -58,13 +63,13 @@ def bench_programs(family_name: str, method: str, seeds: int, devices: int, chun
     rngs = experiment.method_keys(member_seeds)
     states = program.init(rngs)
     heldout = envs.held_out(family)
+    position = np.int32(0)
     args = {
         "init": (program._init, (rngs, {})),
-        "chunk": (program._run_chunk, (states, sequences, jnp.int32(0), keys, index, {})),
-        "heldout": (program._heldout, (states, heldout, keys, sequences, jnp.int32(0), keys, {})),
+        "learn": (program._learn, (states, sequences, position, index, {})),
+        "evaluate_task": (program._evaluate_task, (states, sequences, position, keys, {})),
+        "heldout": (program._heldout, (states, heldout, keys, sequences, position, keys, index, {})),
     }
-    if hasattr(program, "_evaluate"):
-        args["evaluate"] = (program._evaluate, (states, sequences, jnp.int32(0), keys, {}))
     lines = []
     for name in programs:
         if name not in args:
@@ -87,9 +92,9 @@ def bench_programs(family_name: str, method: str, seeds: int, devices: int, chun
     return lines
 
 
-def bench_start(run_args: str, cache: str, label: str) -> str:
+def bench_start(run_args: str, cache: str, label: str, until_first: bool = False) -> str:
     """Runs run_sequence.py with ``run_args`` and the compile cache ``cache``; seconds to the first training
-    iteration line and to the end."""
+    iteration line and to the end (``until_first``: stopped there)."""
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     out = tempfile.mkdtemp(prefix="bench_compile_run_")
     command = [sys.executable, "-u", os.path.join(root, "experiments", "run_sequence.py"), *shlex.split(run_args),
@@ -104,9 +109,12 @@ def bench_start(run_args: str, cache: str, label: str) -> str:
         sys.stderr.write(f"  [{now - start:6.1f}s] {line}")
         if first is None and re.search(r"\] task \S+ iteration \d+", line):
             first = now - start
+            if until_first:
+                proc.kill()
+                break
     proc.wait()
     total = time.perf_counter() - start
-    if proc.returncode != 0:
+    if proc.returncode != 0 and not until_first:
         raise SystemExit(f"run_sequence.py exited with {proc.returncode}")
     first_text = "none" if first is None else f"{first:.1f}"
     return (f"mode=start cache={label} first_iteration_s={first_text} total_s={total:.1f} "
@@ -118,10 +126,11 @@ def main():
     parser.add_argument("--mode", choices=("programs", "start"), default="programs")
     parser.add_argument("--families", nargs="+", default=["cheetah_vel", "ant_goal"])
     parser.add_argument("--methods", nargs="+", default=["comps", "ppo_tl"])
-    parser.add_argument("--programs", nargs="+", default=["init", "chunk", "evaluate", "heldout"])
+    parser.add_argument("--programs", nargs="+", default=["init", "learn", "evaluate_task", "heldout"])
+    parser.add_argument("--until", choices=("first", "end"), default="end",
+                        help="start mode: stop each run at its first training iteration, or let it finish")
     parser.add_argument("--seeds", type=int, default=4)
     parser.add_argument("--devices", type=int, default=None, help="host devices (default: one per core)")
-    parser.add_argument("--chunk", type=int, default=2)
     parser.add_argument("--num-tasks", type=int, default=2)
     parser.add_argument("--run-args", default="--family cheetah_vel --methods comps --num-tasks 2",
                         help="start mode: run_sequence.py's options")
@@ -129,7 +138,7 @@ def main():
     if args.mode == "start":
         cache = tempfile.mkdtemp(prefix="bench_compile_cache_")
         for label in ("cold", "warm"):
-            print(bench_start(args.run_args, cache, label), flush=True)
+            print(bench_start(args.run_args, cache, label, args.until == "first"), flush=True)
         return
     devices = args.devices or min(hostdevices.cores(), args.seeds)
     hostdevices.configure(devices)
@@ -138,7 +147,7 @@ def main():
     jax.config.update("jax_enable_compilation_cache", False)
     for family in args.families:
         for method in args.methods:
-            bench_programs(family, method, args.seeds, devices, args.chunk, args.num_tasks, args.programs)
+            bench_programs(family, method, args.seeds, devices, args.num_tasks, args.programs)
 
 
 if __name__ == "__main__":

@@ -157,11 +157,13 @@ class Console:
                      f"{event['chunk']}")
             self.progress[name] = Progress(name, len(event["members"]), event["num_tasks"], event["start_task"],
                                            self.log, self.interval, event["members"] if points > 1 else None)
+        elif kind == "compiling" and "seconds" in event:
+            self.log(f"[{name}] still compiling the {event['what']} program: {_clock(event['seconds'])}")
         elif kind == "compiling":
             after = " (while the first task trains)" if event["part"] in ("evaluate_task", "heldout") else ""
             self.log(f"[{name}] compiling the {event['what']} program ({event['family']}, {event['method']}){after}...")
         elif kind == "compiled":
-            cached = "; from the compile cache" if event["seconds"] - event["trace_seconds"] < 3 else ""
+            cached = "; from the compile cache" if event.get("cached") else ""
             self.log(f"[{name}] {event['what']} program ready in {_clock(event['seconds'])} (tracing "
                      f"{event['trace_seconds']:.0f}s{cached})")
             if event["part"] == "learn" and name in self.progress:

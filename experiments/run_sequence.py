@@ -84,7 +84,7 @@ def parse_args(argv=None):
                              "up to a multiple of the devices used; the extra ones are not reported. On a GPU "
                              "machine the run uses the GPUs instead")
     parser.add_argument("--tensorboard", action="store_true", help="also write TensorBoard logs (tensorboardX)")
-    parser.add_argument("--compile-cache", default=os.environ.get("JCOMPS_COMPILE_CACHE"), metavar="DIR",
+    parser.add_argument("--compile-cache", default=os.environ.get(compile_cache.ENV), metavar="DIR",
                         help="JAX's persistent compilation cache: a second identical run, or a --resume, loads its "
                              "programs instead of compiling them; none: off (default: $JCOMPS_COMPILE_CACHE, else "
                              f"{compile_cache.default_directory()})")

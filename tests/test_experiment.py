@@ -4,6 +4,7 @@ import json
 import os
 import re
 import shutil
+import time
 
 import jax
 import numpy as np
@@ -215,7 +216,12 @@ def test_iqm_and_its_stratified_bootstrap_interval():
     (["--family", "humanoid"], "family='humanoid'; allowed:"),
     (["--budget", "0"], "budget=0"),
     (["--budget", "-3"], "budget=-3"),
-    (["--learning-rate", "abc"], "invalid"),
+    (["--learning-rate", "abc"], "argument --learning-rate: expected a number, got 'abc'"),
+    (["--learning-rate", "inf"], "argument --learning-rate: expected a finite number, got 'inf'"),
+    (["--set", "comps.meta.outer_learning_rate=nan"], "--set comps.meta.outer_learning_rate: .*finite number"),
+    (["--budget", "abc"], "argument --budget: expected an integer or none, got 'abc'"),
+    (["--devices", "99"], "--devices 99: this machine has [0-9]+ cores; allowed: 1 to"),
+    (["--compile-cache", "none", "--hidden-sizes", "64", "x"], "argument --hidden-sizes: expected an integer"),
     (["--seeds", "0"], "seeds=0"),
     (["--chunk-tasks", "0"], "chunk_tasks=0"),
     (["--num-tasks", "41"], re.escape("--num-tasks must be in [1, 40]")),
@@ -547,22 +553,24 @@ def test_console_says_what_compiles_and_evaluates(console, tmp_path):
           "start_task": 0, "members": ["comps seed 0", "comps seed 1"]})
     where = {"program": "comps", "family": "cheetah_vel", "method": "comps"}
     show({"event": "compiling", "part": "learn", "what": "learning", **where})
+    show({"event": "compiling", "part": "learn", "what": "learning", "seconds": 20.5, **where})
     show({"event": "compiled", "part": "learn", "what": "learning", "seconds": 95.0, "trace_seconds": 12.0,
           **where})
     show({"event": "compiling", "part": "heldout", "what": "held-out", **where})
     show({"event": "compiled", "part": "heldout", "what": "held-out", "seconds": 13.5, "trace_seconds": 12.0,
-          **where})
+          "cached": True, **where})
     show({"event": "evaluating", "program": "comps", "after_tasks": 0, "learnt": 0})
     show({"event": "heldout_iteration", "program": "comps", "member": 1, "heldout_task": 7, "heldout_iteration": 3,
           "success_rate": 0.0, "mean_return": -1.0})
     show({"event": "evaluated", "program": "comps", "after_tasks": 0, "seconds": 42.0})
     assert lines[1] == "[comps] compiling the learning program (cheetah_vel, comps)..."
-    assert lines[2] == "[comps] learning program ready in 1m35s (tracing 12s)"
-    assert lines[3].endswith("(while the first task trains)...")
-    assert lines[4] == "[comps] held-out program ready in 0m13s (tracing 12s; from the compile cache)"
-    assert lines[5] == "[comps] held-out meta-test of the initial policies..."
-    assert lines[6].startswith("[comps] held-out meta-test: 8 held-out tasks, iteration 3 (slowest 0) | elapsed")
-    assert lines[7] == "[comps] evaluations after 0 task(s) done in 0m42s"
+    assert lines[2] == "[comps] still compiling the learning program: 0m20s"
+    assert lines[3] == "[comps] learning program ready in 1m35s (tracing 12s)"
+    assert lines[4].endswith("(while the first task trains)...")
+    assert lines[5] == "[comps] held-out program ready in 0m13s (tracing 12s; from the compile cache)"
+    assert lines[6] == "[comps] held-out meta-test of the initial policies..."
+    assert lines[7].startswith("[comps] held-out meta-test: 8 held-out tasks, iteration 3 (slowest 0) | elapsed")
+    assert lines[8] == "[comps] evaluations after 0 task(s) done in 0m42s"
 
 
 def test_console_shows_the_meta_steps_health(console, tmp_path):
@@ -690,3 +698,12 @@ def test_read_latest_skips_an_unreadable_step_and_changes_nothing(full_run, tmp_
     assert step == steps[-2] and "cannot be read" in warnings[0]
     assert sorted(str(p) for p in tmp_path.rglob("*")) == before  # read-only: nothing moved or written
     assert checkpoint.read_latest(str(tmp_path / "none"), print) is None
+
+
+def test_a_long_compile_keeps_saying_so():
+    beats = []
+    with experiment._heartbeat(lambda: beats.append(1), interval=0.05):
+        time.sleep(0.3)
+    count = len(beats)
+    time.sleep(0.15)
+    assert count >= 2 and len(beats) == count  # beats while the block runs, none after

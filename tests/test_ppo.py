@@ -248,3 +248,24 @@ def test_vanilla_surrogate_is_the_clipped_one_on_policy():
     stale = {**batch, "log_prob": batch["log_prob"] - 0.3}
     diff = jax.tree.map(lambda a, b: float(jnp.max(jnp.abs(a - b))), grad(stale, "vanilla"), grad(stale, "clipped"))
     assert max(jax.tree.leaves(diff)) > 1e-4
+
+
+def test_fixed_budget_run_stops_once_solved_and_long_enough(point):
+    """``run_at_least`` (the held-out meta-test): once the threshold was reached and that many iterations ran, the
+    rest of the fixed budget is left unrun; what was run, and the iterations-to-success, equal the full run's."""
+    easy = dataclasses.replace(point, success_threshold=0.0)
+    optimizer = ppo.make_optimizer(SMALL)
+    params = ppo.init_params(SMALL, easy, jax.random.PRNGKey(0))
+    task = envs.task_at(easy, 0)
+
+    def run(at_least):
+        return jax.jit(lambda p, o, r: ppo.rl_step(SMALL, easy, p, o, task, r, stop_at_threshold=False,
+                                                   run_at_least=at_least))(
+            params, optimizer.init(params), jax.random.PRNGKey(1))
+
+    full, short = run(None), run(3)
+    np.testing.assert_array_equal(np.asarray(full.metrics.valid), [True] * SMALL.budget)
+    np.testing.assert_array_equal(np.asarray(short.metrics.valid), [True] * 3 + [False] * (SMALL.budget - 3))
+    chex.assert_trees_all_equal(jax.tree.map(lambda x: x[:3], full.metrics), jax.tree.map(lambda x: x[:3],
+                                                                                         short.metrics))
+    assert int(full.iterations) == int(short.iterations) == 1 and bool(full.solved) and bool(short.solved)

@@ -30,8 +30,18 @@ MIN_COMPILE_SECONDS = 1.0
 OFF = "none"
 """``--compile-cache none``: no persistent cache."""
 
+ENV = "JCOMPS_COMPILE_CACHE"
+"""The environment variable that chooses the directory (or ``none``) where no option does."""
+
 _callbacks: contextvars.ContextVar = contextvars.ContextVar("jcomps_host_callbacks", default=None)
 _patched: Optional[bool] = None
+_hits = [0]
+_listening = [False]
+
+
+def hits() -> int:
+    """Programs loaded from the persistent cache in this process so far (since ``configure``)."""
+    return _hits[0]
 
 
 def default_directory() -> str:
@@ -59,7 +69,21 @@ def configure(directory: Optional[str] = None) -> Optional[str]:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_SECONDS)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     _patch()
+    if not _listening[0]:
+        from jax._src import monitoring
+
+        def count(event, **kwargs):
+            if event == "/jax/compilation_cache/cache_hits":
+                _hits[0] += 1
+
+        monitoring.register_event_listener(count)
+        _listening[0] = True
     return directory
+
+
+def from_environment() -> Optional[str]:
+    """``configure`` with ``$JCOMPS_COMPILE_CACHE`` (unset: the default directory): what the benchmarks call."""
+    return configure(os.environ.get(ENV))
 
 
 def callbacks_cached() -> bool:

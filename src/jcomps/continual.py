@@ -246,6 +246,8 @@ def evaluate_task(method: Method, eval_config: EvalConfig, state, sequence, i, e
         j = jnp.maximum(j, 0)  # the rollout keeps ``key`` (the same stream as before policy_for existed)
         return _evaluate(method, state, j, _task_at(sequence, j), key, trajectories)
 
+    # Two rollouts, not one of k + 1 lanes: XLA rounds a lane's mean return differently in a batch of another size,
+    # and the learnt task's evaluation must equal learnt_tasks' on the same policy bit for bit (forgetting 0).
     returns, success = jax.vmap(back)(prev, keys)
     now = _evaluate(method, state, i, _task_at(sequence, i), learnt_key(eval_key, i), eval_config.episodes(method))
     return TaskEvaluation(returns, prev >= 0, success, Evaluation(*now, jnp.bool_(True)))

@@ -28,10 +28,12 @@ Nothing here prints: the outside world gets events through one ``progress_fn`` c
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
 import os
+import threading
 import time
 from typing import Callable, Optional
 
@@ -40,7 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import PartitionSpec as P
 
-from jcomps import continual, envs, grid as grids, methods, progress, results
+from jcomps import compile_cache, continual, envs, grid as grids, methods, progress, results
 from jcomps.checkpoint import Checkpoints, RunError, record, unflatten
 from jcomps.numerics import check_field, check_finite_fields
 
@@ -233,6 +235,29 @@ def eval_keys(seeds: list[int], purpose: int) -> jax.Array:
     return _salted(seeds, EVAL_SALT, purpose)
 
 
+HEARTBEAT_SECONDS = 20.0
+"""How often a compile that is still running says so (``compiling`` events with ``seconds``)."""
+
+
+@contextlib.contextmanager
+def _heartbeat(beat: Callable[[], None], interval: float = HEARTBEAT_SECONDS):
+    """Calls ``beat`` every ``interval`` seconds from a thread while the block runs (XLA compiles without holding
+    the GIL, so the thread gets to run)."""
+    done = threading.Event()
+
+    def loop():
+        while not done.wait(interval):
+            beat()
+
+    thread = threading.Thread(target=loop, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        done.set()
+        thread.join()
+
+
 PARTS = ("init", "learn", "evaluate_task", "heldout")
 """The compiled programs of a method (``MethodProgram``), in the order a run first needs them."""
 
@@ -327,12 +352,13 @@ class MethodProgram:
         if part not in self.compiled:
             notify = notify or _silent
             notify({"event": "compiling", "part": part})
-            start = time.time()
-            traced = getattr(self, "_" + part).trace(*args)
-            traced_at = time.time()
-            self.compiled[part] = traced.lower().compile()
+            start, hits = time.time(), compile_cache.hits()
+            with _heartbeat(lambda: notify({"event": "compiling", "part": part, "seconds": time.time() - start})):
+                traced = getattr(self, "_" + part).trace(*args)
+                traced_at = time.time()
+                self.compiled[part] = traced.lower().compile()
             notify({"event": "compiled", "part": part, "seconds": time.time() - start,
-                    "trace_seconds": traced_at - start})
+                    "trace_seconds": traced_at - start, "cached": compile_cache.hits() > hits})
         return self.compiled[part]
 
     def _call(self, part, *args):
@@ -412,8 +438,9 @@ ProgressReceiver = Callable[[dict], None]
   ``seeds``, ``grid_points``, ``padding``, ``devices``, ``budget``, ``chunk``, ``start_task``: 0, ``members``:
   each member's name);
 - ``compiling`` / ``compiled``: one of its programs (``PARTS``) is being compiled / is ready (``program``,
-  ``family``, ``method``, ``part``, ``what``: its name in words; ``compiled`` adds ``seconds`` and
-  ``trace_seconds``); ``learn`` compiles first and alone, the evaluation programs while the first task trains;
+  ``family``, ``method``, ``part``, ``what``: its name in words; ``compiled`` adds ``seconds``,
+  ``trace_seconds`` and ``cached``: whether it came from the persistent compile cache, ``jcomps.compile_cache``; a compile still running repeats ``compiling`` every ``HEARTBEAT_SECONDS`` with ``seconds``
+  so far); ``learn`` compiles first and alone, the evaluation programs while the first task trains;
 - ``resumed``: it continues from a checkpoint (``program``, ``step``, ``tasks_done``, ``num_tasks``);
 - ``evaluating`` / ``evaluated``: the held-out meta-test and learnt-task evaluation after ``after_tasks`` tasks
   (0: the initial policies, measured after the first chunk) begins / ends (``seconds``); in between,
