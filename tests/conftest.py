@@ -9,6 +9,10 @@ jax 0.11.2; with ``highest`` the meta, V-trace and CoMPS tests pass there). On C
 
 JAX sees two CPU host devices (set through ``jcomps.hostdevices`` before JAX starts, with its deadlock-free
 thread pool), so the runner's sharding of seeds over devices is tested in-process.
+
+The runner's persistent compile cache is off in tests (``JCOMPS_COMPILE_CACHE=none``, unless set otherwise), so
+the suite writes nothing under the user's cache home and every run compiles what it tests;
+``tests/test_compile_cache.py`` tests the cache in directories of its own.
 """
 
 import importlib.util
@@ -16,6 +20,8 @@ import os
 import pathlib
 
 from jcomps import hostdevices
+
+os.environ.setdefault("JCOMPS_COMPILE_CACHE", "none")
 
 if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", ""):
     hostdevices.configure(2)
