@@ -439,8 +439,9 @@ ProgressReceiver = Callable[[dict], None]
   each member's name);
 - ``compiling`` / ``compiled``: one of its programs (``PARTS``) is being compiled / is ready (``program``,
   ``family``, ``method``, ``part``, ``what``: its name in words; ``compiled`` adds ``seconds``,
-  ``trace_seconds`` and ``cached``: whether it came from the persistent compile cache, ``jcomps.compile_cache``; a compile still running repeats ``compiling`` every ``HEARTBEAT_SECONDS`` with ``seconds``
-  so far); ``learn`` compiles first and alone, the evaluation programs while the first task trains;
+  ``trace_seconds`` and ``cached``: whether it came from the persistent compile cache, ``jcomps.compile_cache``);
+  a compile still running repeats ``compiling`` every ``HEARTBEAT_SECONDS`` with the ``seconds`` so far;
+  ``learn`` compiles first and alone, the evaluation programs while the first task trains;
 - ``resumed``: it continues from a checkpoint (``program``, ``step``, ``tasks_done``, ``num_tasks``);
 - ``evaluating`` / ``evaluated``: the held-out meta-test and learnt-task evaluation after ``after_tasks`` tasks
   (0: the initial policies, measured after the first chunk) begins / ends (``seconds``); in between,
@@ -549,8 +550,8 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
     member = lambda shapes: jax.tree.map(  # noqa: E731
         lambda x: jax.ShapeDtypeStruct((padded,) + x.shape, x.dtype), shapes)
     chunk_shapes = continual.chunk_metrics(task_shapes, member(continual.task_evaluation_shapes(eval_config)))
-    heldout_shapes = member(continual.heldout_shapes(eval_config, run.family, jax.tree.leaves(heldout_tasks)[0].shape[0],
-                                                     run.num_tasks))
+    num_heldout = jax.tree.leaves(heldout_tasks)[0].shape[0]
+    heldout_shapes = member(continual.heldout_shapes(eval_config, run.family, num_heldout, run.num_tasks))
     # Host copies of every metric of the sequence, filled task by task: [members, num_tasks, ...]; those measured
     # at the start and after every chunk (held-out adaptation, learnt tasks): [members, num_chunks + 1, ...].
     per_task = jax.tree.map(lambda x: np.zeros((x.shape[0], run.num_tasks) + x.shape[1:], x.dtype), chunk_shapes)
