@@ -9,7 +9,7 @@ jax 0.10 never stores a program that has any: its lowered module refers to each 
 executable's callback list, and jax's cache reader does not pass the list back when it loads an executable. The
 module itself does not depend on the callbacks (the cache key is the same in every process), so this module
 lets jax store such programs and, when it loads one, hands it the callbacks of the program being compiled now,
-exactly as a fresh compile would get them (``_with_callbacks``). It patches two private functions of
+exactly as a fresh compile would get them (``_with_callbacks``). It wraps three private functions of
 ``jax._src.compiler`` / ``jax._src.compilation_cache`` at the versions pinned in ``pyproject.toml``; if they are
 not as expected it leaves jax alone and programs with callbacks are simply compiled every time
 (``callbacks_cached()`` says which).
