@@ -30,13 +30,12 @@ class Progress:
         self.start = time.time()
         self.start_task = start_task
         self.last = 0.0
-        self.heldout_start = time.time()
-        self.heldout_iteration = np.zeros((seeds, 0), np.int64)
         self.task = np.full(seeds, start_task, np.int64)
         self.iteration = np.zeros(seeds, np.int64)
         self.success = np.zeros(seeds)
         self.meta_loss = np.full(seeds, np.nan)
         self.meta_health = np.full((seeds, 4), np.nan)  # value l2, value EV on returns, mean |Â|, mean ρ
+        self.heldout_begin()
 
     def restart_clock(self):
         """Elapsed and remaining count from now (after the learning program compiled)."""

@@ -517,12 +517,17 @@ def _chunk_metrics(seeds, tasks, budget, nonfinite_at=None):
     return continual.ChunkMetrics(task, np.zeros((seeds, tasks, 0), np.float32), np.zeros((seeds, tasks, 0), bool))
 
 
+def _start_event(seeds=2, padding=0, **changes):
+    """The runner's ``start`` event of a CoMPS program (members: the seeds and the padding), with ``changes``."""
+    return {"event": "start", "program": "comps", "family": "cheetah_vel", "sequence": "non-stationary",
+            "num_tasks": 2, "seeds": seeds, "grid_points": 1, "padding": padding, "devices": 2, "budget": 4,
+            "chunk": 2, "start_task": 0, "members": [f"comps seed {s}" for s in range(seeds + padding)], **changes}
+
+
 def test_console_turns_runner_events_into_lines(console, tmp_path):
     lines = []
     show = console.Console(lines.append, str(tmp_path), interval=0.0)
-    show({"event": "start", "program": "comps", "family": "point_goal", "sequence": "stationary", "num_tasks": 2,
-          "seeds": 3, "grid_points": 1, "padding": 1, "devices": 2, "budget": 4, "chunk": 1, "start_task": 0,
-          "members": ["comps seed 0", "comps seed 1", "comps seed 2", "comps seed 3"]})
+    show(_start_event(family="point_goal", sequence="stationary", seeds=3, padding=1, chunk=1))
     show({"event": "iteration", "program": "comps", "member": 1, "task": 0, "iteration": 3, "success_rate": 0.5,
           "mean_return": -3.0})
     show({"event": "meta_step", "program": "comps", "member": 1, "task": 0, "meta_step": 7, "meta_steps": 125,
@@ -548,9 +553,7 @@ def test_console_says_what_compiles_and_evaluates(console, tmp_path):
     """No silent phase: every compile says what and how long, the held-out meta-test shows its progress."""
     lines = []
     show = console.Console(lines.append, str(tmp_path), interval=0.0)
-    show({"event": "start", "program": "comps", "family": "cheetah_vel", "sequence": "non-stationary",
-          "num_tasks": 2, "seeds": 2, "grid_points": 1, "padding": 0, "devices": 2, "budget": 4, "chunk": 2,
-          "start_task": 0, "members": ["comps seed 0", "comps seed 1"]})
+    show(_start_event())
     where = {"program": "comps", "family": "cheetah_vel", "method": "comps"}
     show({"event": "compiling", "part": "learn", "what": "learning", **where})
     show({"event": "compiling", "part": "learn", "what": "learning", "seconds": 20.5, **where})
@@ -578,9 +581,7 @@ def test_console_shows_the_meta_steps_health(console, tmp_path):
 
     lines = []
     show = console.Console(lines.append, str(tmp_path), interval=0.0)
-    show({"event": "start", "program": "comps", "family": "cheetah_vel", "sequence": "non-stationary",
-          "num_tasks": 3, "seeds": 2, "grid_points": 1, "padding": 0, "devices": 1, "budget": 4, "chunk": 1,
-          "start_task": 1, "members": ["comps seed 0", "comps seed 1"]})
+    show(_start_event(num_tasks=3, devices=1, chunk=1, start_task=1))
     show({"event": "meta_step", "program": "comps", "member": 0, "task": 1, "meta_step": 3, "meta_steps": 125,
           "bc_loss": -3.0, "value_l2": 0.25, "value_ev": 0.8, "adv_abs": 0.4, "rho": 0.5})
     assert lines[-1].startswith("[comps] task 2/3 meta-training step 3/125 bc loss -3.000 value l2 0.25 EV 0.80 "

@@ -148,7 +148,7 @@ def test_every_traced_field_traces(name):
     # The runner sizes its host copies from continual's shapes without tracing these programs: they must agree.
     eval_config = continual.EvalConfig().resolve("point_goal")
     member = lambda tree: jax.tree.map(lambda x: (1,) + x.shape + (x.dtype,), tree)  # noqa: E731
-    expected = continual.heldout_shapes(eval_config, "point_goal", len(family.held_out_values), 2)
+    expected = continual.heldout_shapes(eval_config, len(family.held_out_values), 2)
     assert member(expected) == jax.tree.map(lambda x: x.shape + (x.dtype,), (held, learnt))
     evaluation = jax.eval_shape(program.evaluate_task, states, seq, jnp.int32(0), keys, hparams)
     assert member(continual.task_evaluation_shapes(eval_config)) == jax.tree.map(lambda x: x.shape + (x.dtype,),

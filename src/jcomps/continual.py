@@ -322,23 +322,25 @@ class HeldoutMetrics(NamedTuple):
     solved: jax.Array
 
 
-def heldout_shapes(eval_config: EvalConfig, family: str, num_heldout: int, num_tasks: int):
+def _shape(*shape, dtype=jnp.float32):
+    return jax.ShapeDtypeStruct(shape, dtype)
+
+
+def heldout_shapes(eval_config: EvalConfig, num_heldout: int, num_tasks: int):
     """The shapes (``jax.ShapeDtypeStruct``) of one member's (HeldoutMetrics, learnt Evaluation) of
     ``heldout_adaptation`` and ``learnt_tasks`` without tracing them (the runner needs them before those programs
     are compiled; a test checks them against the traced functions)."""
     curve = eval_config.heldout_iterations + 1
-    f32 = lambda *shape: jax.ShapeDtypeStruct(shape, jnp.float32)  # noqa: E731
-    held = HeldoutMetrics(f32(num_heldout, curve), f32(num_heldout, curve),
-                          jax.ShapeDtypeStruct((num_heldout,), jnp.int32), jax.ShapeDtypeStruct((num_heldout,), bool))
-    return held, Evaluation(f32(num_tasks), f32(num_tasks), jax.ShapeDtypeStruct((num_tasks,), bool))
+    held = HeldoutMetrics(_shape(num_heldout, curve), _shape(num_heldout, curve), _shape(num_heldout, dtype=jnp.int32),
+                          _shape(num_heldout, dtype=bool))
+    return held, Evaluation(_shape(num_tasks), _shape(num_tasks), _shape(num_tasks, dtype=bool))
 
 
 def task_evaluation_shapes(eval_config: EvalConfig) -> TaskEvaluation:
     """The shapes of one member's ``evaluate_task`` output, without tracing it."""
     k = eval_config.backward_tasks
-    f32 = lambda *shape: jax.ShapeDtypeStruct(shape, jnp.float32)  # noqa: E731
-    return TaskEvaluation(f32(k), jax.ShapeDtypeStruct((k,), bool), f32(k),
-                          Evaluation(f32(), f32(), jax.ShapeDtypeStruct((), bool)))
+    return TaskEvaluation(_shape(k), _shape(k, dtype=bool), _shape(k),
+                          Evaluation(_shape(), _shape(), _shape(dtype=bool)))
 
 
 def heldout_adaptation(method: Method, eval_config: EvalConfig, state, heldout_tasks, rng,

@@ -530,11 +530,6 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
         progress_fn({**event, "program": name, "family": run.family, "method": spec.method,
                      "what": PART_NAMES[event["part"]]})
 
-    def abstract(shapes, sharded=True):
-        """``jax.ShapeDtypeStruct``s of [members, ...] outputs, sharded as the programs make them."""
-        return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=program.sharding)
-                            if sharded else x, shapes)
-
     member_names = [f"{points[p].key} seed {s}" for p, s in zip(member_point, member_seed)]
     progress_fn({"event": "start", "program": name, "family": run.family, "sequence": run.sequence,
                  "num_tasks": run.num_tasks, "seeds": run.seeds, "grid_points": len(points), "padding": padded - real,
@@ -543,15 +538,13 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
     init_keys = method_keys(member_seed)
     states = program.init(init_keys, hparams_host)
     # The learning program is the one a run waits for: it compiles first, alone.
-    position = np.int32(0)
-    learn_args = (states, sequences, position, seed_index, hparams)
-    program.compile("learn", *learn_args, notify=notify)
+    program.compile("learn", states, sequences, np.int32(0), seed_index, hparams, notify=notify)
     task_shapes = program.compiled["learn"].out_info[1]
     member = lambda shapes: jax.tree.map(  # noqa: E731
         lambda x: jax.ShapeDtypeStruct((padded,) + x.shape, x.dtype), shapes)
     chunk_shapes = continual.chunk_metrics(task_shapes, member(continual.task_evaluation_shapes(eval_config)))
     num_heldout = jax.tree.leaves(heldout_tasks)[0].shape[0]
-    heldout_shapes = member(continual.heldout_shapes(eval_config, run.family, num_heldout, run.num_tasks))
+    heldout_shapes = member(continual.heldout_shapes(eval_config, num_heldout, run.num_tasks))
     # Host copies of every metric of the sequence, filled task by task: [members, num_tasks, ...]; those measured
     # at the start and after every chunk (held-out adaptation, learnt tasks): [members, num_chunks + 1, ...].
     per_task = jax.tree.map(lambda x: np.zeros((x.shape[0], run.num_tasks) + x.shape[1:], x.dtype), chunk_shapes)
@@ -593,13 +586,15 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
             results.save_partial(out, key, raw)
 
     start_time = time.time()
-    heldout_abstract = (abstract(states), heldout_tasks, abstract(backward_keys), abstract(sequences), np.int32(0),
-                        abstract(backward_keys), abstract(seed_index), abstract(hparams))
+    def compile_heldout(states):
+        """The held-out program, compiled for arguments shaped as ``evaluate`` gives them (a no-op once done)."""
+        program.compile("heldout", states, heldout_tasks, backward_keys, sequences, np.int32(0), backward_keys,
+                        seed_index, hparams, notify=notify)
 
     def evaluate(states, column: int, learnt: int, keys, after: int):
         """The evaluations of ``states`` (``learnt``: the tasks to evaluate) into column ``column`` of ``heldout``
         (``after``: the tasks learnt, for the progress lines)."""
-        program.compile("heldout", *heldout_abstract, notify=notify)
+        compile_heldout(states)
         progress_fn({"event": "evaluating", "program": name, "after_tasks": after, "learnt": learnt})
         began = time.time()
         out_h = jax.device_get(program.heldout(states, heldout_tasks, program.put(keys), sequences, np.int32(learnt),
@@ -627,7 +622,7 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
                 program.compile("evaluate_task", states, sequences, np.int32(i), backward_keys, hparams,
                                 notify=notify)
                 evaluation = program.evaluate_task(states, sequences, np.int32(i), backward_keys, hparams)
-                program.compile("heldout", *heldout_abstract, notify=notify)
+                compile_heldout(states)
                 task_metrics.append(continual.chunk_metrics(learnt_metrics, evaluation))
             metrics = jax.device_get(jax.tree.map(lambda *x: jnp.stack(x, axis=1), *task_metrics))
             jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), slice(start, stop)), src), per_task, metrics)
