@@ -24,7 +24,7 @@ import os
 import shutil
 import sys
 
-from jcomps import experiment, report, results
+from jcomps import experiment, report, results, rundir
 
 
 def merged_description(descriptions: list) -> dict:
@@ -101,7 +101,7 @@ def merge(out: str, sources: list[str], baseline=None, methods_=None, partial: b
     for src, dst in copies:
         os.makedirs(os.path.dirname(dst), exist_ok=True)
         shutil.copy2(src, dst)
-    experiment._write_json(os.path.join(out, "run.json"), description)
+    rundir.write_json(os.path.join(out, "run.json"), description)
     return report.write(out, baseline=baseline, partial=partial)
 
 

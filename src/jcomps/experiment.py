@@ -45,6 +45,7 @@ from jax.sharding import PartitionSpec as P
 from jcomps import compile_cache, continual, envs, grid as grids, methods, progress, results
 from jcomps.checkpoint import Checkpoints, RunError, record, unflatten
 from jcomps.numerics import check_field, check_finite_fields
+from jcomps.rundir import write_json
 
 
 @dataclasses.dataclass(frozen=True)
@@ -155,13 +156,6 @@ UNRESUMABLE_EVAL_BEFORE = dict.fromkeys(
     "its checkpoints lack the evaluations of the learnt tasks behind forgetting and average performance (issue 28)")
 
 
-def _write_json(path, data):
-    tmp = path + ".tmp"
-    with open(tmp, "w") as f:
-        json.dump(data, f, indent=1)
-    os.replace(tmp, path)
-
-
 def open_run_dir(out: str, description: dict, resume: bool) -> None:
     """Creates ``out`` for a new run, or checks that it holds this very run when resuming."""
     run_json = os.path.join(out, "run.json")
@@ -184,13 +178,13 @@ def open_run_dir(out: str, description: dict, resume: bool) -> None:
         if diff:
             raise RunError(f"--resume: {out} was made with another config: " + "; ".join(diff[:8]))
         if filled:  # record them, so that the run's description is whole again
-            _write_json(run_json, stored)
+            write_json(run_json, stored)
         return
     if os.path.exists(run_json) or os.path.exists(os.path.join(out, "results.json")):
         raise RunError(f"{out} already holds a run; choose another --out, or add --resume to continue it")
     try:
         os.makedirs(out, exist_ok=True)
-        _write_json(run_json, description)
+        write_json(run_json, description)
     except OSError as err:
         raise RunError(f"--out {out}: cannot create the run directory there ({type(err).__name__}: "
                        f"{err.strerror or err}); choose a writable path") from None

@@ -43,7 +43,7 @@ from typing import Optional
 
 import numpy as np
 
-from jcomps import cli, envs, experiment, methods
+from jcomps import cli, envs, experiment, methods, rundir
 from jcomps import continual_metrics as cm
 from jcomps import results as results_
 from jcomps import grid as grids
@@ -758,7 +758,7 @@ def write(out: str, baseline: Optional[str] = None, partial: bool = False) -> Op
     if cut is not None:
         results["partial"] = cut
     results["plots"] = [os.path.relpath(p, out) for p in _plots(results, raws, os.path.join(out, "plots"))]
-    experiment._write_json(os.path.join(out, "results.json"), results)
+    rundir.write_json(os.path.join(out, "results.json"), results)
     table = grid_table(results)
     head = "" if cut is None else (
         f"Unfinished run: tasks 1-{cut['tasks']} of {cut['of']}, the tasks every method has finished (tasks done: "
