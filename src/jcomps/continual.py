@@ -16,7 +16,7 @@ from typing import Any, NamedTuple, Optional
 import jax
 import jax.numpy as jnp
 
-from jcomps import acting, ppo
+from jcomps import acting, ppo, progress
 from jcomps.numerics import check_field, check_finite_fields, concrete_max
 from jcomps.progress import ProgressFn, with_fields
 from jcomps.methods import base
@@ -48,7 +48,7 @@ def run_tasks(method: Method, state: Any, tasks, progress_fn: Optional[ProgressF
     def body(state, task):
         new_state, metrics = learn(state, task)
         if progress_fn is not None:
-            progress_fn({"task": state.task_index, "task_iterations": metrics.iterations, "solved": metrics.solved})
+            progress_fn({"phase": progress.TASK, "task": state.task_index, "task_iterations": metrics.iterations, "solved": metrics.solved})
         return new_state, metrics
 
     return jax.lax.scan(body, state, tasks)
@@ -369,8 +369,8 @@ def heldout_adaptation(method: Method, eval_config: EvalConfig, state, heldout_t
     def one(task, key, j):
         report = None
         if progress_fn is not None:
-            report = lambda m: progress_fn({"heldout_task": j, "heldout_iteration": m["iteration"],  # noqa: E731
-                                            "success_rate": m["success_rate"], "mean_return": m["mean_return"]})
+            report = lambda m: progress_fn({"phase": progress.HELDOUT_ITERATION, "heldout_task": j,  # noqa: E731
+                                            "heldout_iteration": m["iteration"], "success_rate": m["success_rate"], "mean_return": m["mean_return"]})
         # Iterations after the curve's end and after the first success change nothing reported: left unrun.
         out = ppo.rl_step(config, method.family, params, optimizer.init(params), task, key, stop_at_threshold=False,
                           budget=eval_config.heldout_run, run_at_least=curve, progress_fn=report)

@@ -598,9 +598,8 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
         return out_h
 
     def receive(metrics: dict):
-        kind = next((k for k in ("iteration", "meta_step", "compress_iteration", "heldout_iteration")
-                     if k in metrics), "meta_step")
-        progress_fn({"event": kind, "program": name, **{k: v.item() for k, v in metrics.items()}})
+        progress_fn({"event": metrics["phase"], "program": name,
+                     **{k: v.item() for k, v in metrics.items() if k != "phase"}})
 
     seeds = list(range(run.seed, run.seed + run.seeds))
     chunks_run = 0

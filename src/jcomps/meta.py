@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from jcomps import buffers, networks, vtrace
+from jcomps import buffers, networks, progress, vtrace
 from jcomps.numerics import all_finite, check_field, check_finite_fields, keep_if_finite, masked_mean
 from jcomps.progress import ProgressFn
 
@@ -481,7 +481,8 @@ def meta_train(config: MetaConfig, state: MetaState, stores: buffers.SequenceSto
 
     def report(step, stats: SlotStats):
         if progress_fn is not None:
-            progress_fn({"meta_step": step, "meta_steps": jnp.int32(steps), "bc_loss": stats.bc_loss,
+            progress_fn({"phase": progress.META_STEP, "meta_step": step, "meta_steps": jnp.int32(steps),
+                         "bc_loss": stats.bc_loss,
                          "value_l2": stats.value_l2, "value_ev": stats.value_ev, "adv_abs": stats.adv_abs,
                          "rho": stats.rho})
 

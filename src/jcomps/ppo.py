@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from jcomps import acting, networks
+from jcomps import acting, networks, progress
 from jcomps.envs.base import Family
 from jcomps.numerics import all_finite, check_field, check_finite_fields, keep_if_finite, masked_mean
 from jcomps.progress import ProgressFn
@@ -337,7 +337,7 @@ def rl_step(config: PPOConfig, family: Family, params: networks.ActorCriticParam
         mean_return = jnp.mean(jnp.sum(traj.reward, axis=0))
         solved = c.solved | (success_rate >= family.success_threshold)  # reached at this or an earlier iteration
         if progress_fn is not None:
-            progress_fn({"iteration": c.it + 1, "success_rate": success_rate, "mean_return": mean_return})
+            progress_fn({"phase": progress.ITERATION, "iteration": c.it + 1, "success_rate": success_rate, "mean_return": mean_return})
         rollout_finite = all_finite((traj.obs, traj.reward))
         aux = c.aux if observe is None else observe(c.aux, traj, c.it)
 

@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from jcomps import acting, networks, ppo
+from jcomps import acting, networks, ppo, progress
 from jcomps.envs.base import Family
 from jcomps.methods.base import Method, TaskMetrics
 from jcomps.numerics import all_finite, check_field, check_finite_fields, keep_if_finite, masked_mean
@@ -183,7 +183,7 @@ def make(family: Family, config: MAMLTLConfig = MAMLTLConfig(), progress_fn: Opt
             mean_return = jnp.mean(jnp.sum(post_traj.reward, axis=0))
             solved = success_rate >= family.success_threshold
             if report is not None:
-                report({"iteration": it + 1, "success_rate": success_rate, "mean_return": mean_return})
+                report({"phase": progress.ITERATION, "iteration": it + 1, "success_rate": success_rate, "mean_return": mean_return})
             rollout_finite = all_finite((pre_traj.obs, pre_traj.reward, post_traj.obs, post_traj.reward))
 
             def skip(_):

@@ -53,7 +53,7 @@ from brax.training import types as brax_types
 from brax.training.agents.sac import losses as sac_losses
 from brax.training.agents.sac import networks as sac_networks
 
-from jcomps import acting, buffers, networks, ppo
+from jcomps import acting, buffers, networks, ppo, progress
 from jcomps.envs.base import Family
 from jcomps.methods.base import Method, TaskMetrics
 from jcomps.numerics import all_finite, check_field, check_finite_fields, keep_if_finite
@@ -503,7 +503,7 @@ def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optio
             mean_return = jnp.mean(jnp.sum(traj.reward, axis=0))
             solved = success_rate >= family.success_threshold
             if report is not None:
-                report({"iteration": c.it + 1, "success_rate": success_rate, "mean_return": mean_return})
+                report({"phase": progress.ITERATION, "iteration": c.it + 1, "success_rate": success_rate, "mean_return": mean_return})
 
             def update(s):
                 def step(carry, key):

@@ -37,7 +37,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from jcomps import acting, networks, ppo
+from jcomps import acting, networks, ppo, progress
 from jcomps.envs.base import Family
 from jcomps.methods.base import Method, TaskMetrics
 from jcomps.numerics import all_finite, check_field, check_finite_fields, keep_if_finite
@@ -265,7 +265,7 @@ def compress(config: PNCConfig, family: Family, kb: dict, active: dict, task, fi
 
         (theta, opt_state, bad), kls = jax.lax.scan(step, (theta, opt_state, bad), indices)
         if progress_fn is not None:
-            progress_fn({"compress_iteration": it + 1, "compress_iterations": jnp.int32(iterations),
+            progress_fn({"phase": progress.COMPRESS_ITERATION, "compress_iteration": it + 1, "compress_iterations": jnp.int32(iterations),
                          "kl": kls[0]})
         return (theta, opt_state, bad), kls[0]
 
