@@ -1,7 +1,9 @@
 """Results of a run directory: ``results.json``, the paper's plots and a significance table.
 
 Everything here is computed from ``run.json`` and ``raw/<entry>.npz`` (``jcomps.results.RawResults``), so
-``python experiments/report.py RUN_DIR`` regenerates all of it at any time.
+``python experiments/report.py RUN_DIR`` regenerates all of it at any time. This module reads the run directory,
+builds ``results.json`` (``summarize``), the plots and the markdown tables, and writes them; the arithmetic is in
+``jcomps.statistics``.
 
 Metrics (SPEC, "Metrics a user expects"):
 
@@ -38,127 +40,22 @@ from __future__ import annotations
 
 import json
 import os
-import warnings
 from typing import Optional
 
 import numpy as np
 
-from jcomps import cli, envs, experiment, methods, rundir
+from jcomps import cli, envs, methods, rundir, statistics
 from jcomps import continual_metrics as cm
 from jcomps import results as results_
 from jcomps import grid as grids
-
-BOOTSTRAP_SAMPLES = 30_000
-IQM_BOOTSTRAP_SAMPLES = 2_000
-
-
-def _mean_se(x: np.ndarray, axis=0):
-    """Mean and standard error over ``axis``, ignoring NaN (NaN where nothing is finite, SE 0 for one value)."""
-    x = np.asarray(x, np.float64)
-    n = np.sum(np.isfinite(x), axis=axis)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        mean = np.nanmean(x, axis=axis)
-        sd = np.nanstd(x, axis=axis, ddof=1)
-    return mean, np.where(n > 1, sd / np.sqrt(np.maximum(n, 1)), np.where(n == 1, 0.0, np.nan))
+from jcomps.checkpoint import RunError
+from jcomps.statistics import BOOTSTRAP_SAMPLES, FT_REFERENCE, IQM_BOOTSTRAP_SAMPLES, mean_se
 
 
 def _curves(values: np.ndarray, valid: np.ndarray) -> list:
     """seeds × tasks × (valid iterations) nested lists."""
     return [[values[s, t][valid[s, t]].round(6).tolist() for t in range(values.shape[1])]
             for s in range(values.shape[0])]
-
-
-def backward_transfer(raw: results_.RawResults) -> np.ndarray:
-    """f64[seeds, tasks]: normalized reward on the previous k tasks after each task (NaN where undefined)."""
-    returns = raw.task.per_iteration.mean_return
-    valid = raw.task.per_iteration.valid
-    seeds, tasks = raw.task.iterations.shape
-    first = returns[:, :, 0]
-    last = np.take_along_axis(returns, np.maximum(valid.sum(-1) - 1, 0)[..., None], axis=2)[..., 0]
-    c, ok = raw.backward_returns, raw.backward_valid
-    out = np.full((seeds, tasks), np.nan)
-    for s in range(seeds):
-        for i in range(tasks):
-            prev = [i - 1 - d for d in range(ok.shape[2]) if ok[s, i, d]]
-            if not prev:
-                continue
-            a, b = first[s, prev].mean(), last[s, prev].mean()
-            cc = c[s, i][ok[s, i]].mean()
-            if abs(b - a) > 1e-8:
-                out[s, i] = (cc - a) / (b - a)
-    return out
-
-
-def _t_statistic(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Student's two-sample t (pooled variance) along the last axis."""
-    nx, ny = x.shape[-1], y.shape[-1]
-    vx, vy = x.var(-1, ddof=1), y.var(-1, ddof=1)
-    pooled = ((nx - 1) * vx + (ny - 1) * vy) / (nx + ny - 2)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return (x.mean(-1) - y.mean(-1)) / np.sqrt(pooled * (1 / nx + 1 / ny))
-
-
-def significance(x, y, samples: int = BOOTSTRAP_SAMPLES, seed: int = 0) -> dict:
-    """Two-sided independent t-test of x against y, analytic and by bootstrap under the null of equal means."""
-    from scipy import stats
-
-    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
-    out = {"mean_a": float(x.mean()), "mean_b": float(y.mean()), "n_a": len(x), "n_b": len(y),
-           "t": None, "p_ttest": None, "p_bootstrap": None, "bootstrap_samples": samples}
-    if len(x) < 2 or len(y) < 2:
-        return out
-    t = float(_t_statistic(x, y))
-    if not np.isfinite(t):  # both groups constant
-        same = bool(x.mean() == y.mean())
-        out.update(t=None, p_ttest=1.0 if same else 0.0, p_bootstrap=1.0 if same else 0.0)
-        return out
-    out["t"] = t
-    out["p_ttest"] = float(stats.ttest_ind(x, y).pvalue)
-    pooled = np.concatenate([x, y]).mean()
-    x0, y0 = x - x.mean() + pooled, y - y.mean() + pooled
-    rng = np.random.default_rng(seed)
-    tb = _t_statistic(x0[rng.integers(0, len(x), (samples, len(x)))], y0[rng.integers(0, len(y), (samples, len(y)))])
-    # A resample whose groups are both constant has t = ±inf when their means differ (as extreme as it gets: it
-    # counts) and NaN when they are equal (t = 0).
-    tb = np.where(np.isnan(tb), 0.0, tb)
-    out["p_bootstrap"] = float((np.sum(np.abs(tb) >= abs(t)) + 1) / (samples + 1))
-    return out
-
-
-def iqm(scores: np.ndarray) -> float:
-    """Interquartile mean of all entries: the mean of the middle 50% (scipy's ``trim_mean`` cutting 25% at each
-    end, rliable's ``aggregate_iqm``)."""
-    from scipy import stats
-
-    return float(stats.trim_mean(np.asarray(scores, np.float64).reshape(-1), 0.25))
-
-
-def iqm_ci(scores: np.ndarray, samples: int = IQM_BOOTSTRAP_SAMPLES, seed: int = 0, level: float = 0.95) -> dict:
-    """IQM of ``scores`` (f[seeds, tasks]) with a stratified-bootstrap percentile confidence interval: each resample
-    draws, for every task independently, as many seeds as there are with replacement (rliable's
-    ``StratifiedBootstrap``)."""
-    x = np.asarray(scores, np.float64)
-    n, tasks = x.shape
-    out = {"iqm": iqm(x), "ci": [None, None], "level": level, "bootstrap_samples": samples, "seeds": n,
-           "num_tasks": tasks}
-    if n < 2:
-        return out
-    rng = np.random.default_rng(seed)
-    idx = rng.integers(0, n, (samples, n, tasks))
-    from scipy import stats
-
-    resampled = np.take_along_axis(np.broadcast_to(x, (samples, n, tasks)), idx, axis=1).reshape(samples, -1)
-    values = stats.trim_mean(resampled, 0.25, axis=1)
-    lo, hi = np.percentile(values, [50 * (1 - level), 50 * (1 + level)])
-    out["ci"] = [float(lo), float(hi)]
-    return out
-
-
-def sequence_halves(num_tasks: int) -> list[tuple[int, int]]:
-    """(first, last) 1-based task ranges of the two halves of a sequence (the second holds the odd task)."""
-    half = num_tasks // 2
-    return [(1, half), (half + 1, num_tasks)] if half >= 1 else [(1, num_tasks)]
 
 
 def _json_float(x):
@@ -201,22 +98,22 @@ def summarize(description: dict, raws: dict, baseline: Optional[str] = None) -> 
     overall_its, overall_ret = {}, {}
     # Every method's AUC over one horizon and performance profile over one τ grid: the longest budget of the run.
     horizon = max(raws[name].task.per_iteration.valid.shape[-1] for _, name, _ in entries)
-    taus = profile_taus(horizon)
+    taus = statistics.profile_taus(horizon)
     for method, name, values in entries:
         raw = raws[name]
         its = raw.task.iterations
         valid = raw.task.per_iteration.valid
         ret, succ = raw.task.per_iteration.mean_return, raw.task.per_iteration.success_rate
-        per_task_return = np.where(valid, ret, 0).sum(-1) / np.maximum(valid.sum(-1), 1)
-        mean, se = _mean_se(its)
-        bt = backward_transfer(raw)
+        per_task_return = statistics.per_task_mean(ret, valid)
+        mean, se = mean_se(its)
+        bt = statistics.backward_transfer(ret, valid, raw.backward_returns, raw.backward_valid)
         h_ret = raw.heldout.mean_return.mean(axis=2)  # [seeds, points, iterations + 1], averaged over tasks
         steps, task_steps, before_steps = env_steps(description, family, method, values)
         # Samples-to-success per seed and task: MAML+TL's iterations collect two batches, PPO's one; PNC's solved
         # tasks add their compress phase (an unsolved task's budget count includes it already); PEARL's every task
         # its initial prior-z collection.
         samples = its * steps + raw.task.solved * task_steps + before_steps
-        samples_mean, samples_se = _mean_se(samples)
+        samples_mean, samples_se = mean_se(samples)
         entry = results["methods"][name] = {
             "iterations_to_success": its.astype(int).tolist(),
             "iterations_to_success_mean": mean.round(3).tolist(),
@@ -243,8 +140,8 @@ def summarize(description: dict, raws: dict, baseline: Optional[str] = None) -> 
                 "solved": raw.heldout.solved.astype(bool).tolist(),
                 "budget": int(description["eval"].get("heldout_budget", 0)),
             },
-            "iqm": [{"tasks": list(r), **iqm_ci(its[:, r[0] - 1:r[1]])}
-                    for r in sequence_halves(its.shape[1])],
+            "iqm": [{"tasks": list(r), **statistics.iqm_ci(its[:, r[0] - 1:r[1]])}
+                    for r in statistics.sequence_halves(its.shape[1])],
             "nonfinite_iterations": int(np.sum(raw.task.per_iteration.nonfinite > 0)),
             "seconds": float(raw.seconds),
             "devices": int(raw.devices),
@@ -257,7 +154,7 @@ def summarize(description: dict, raws: dict, baseline: Optional[str] = None) -> 
                                         **cm.performance_profile_ci(its, raw.task.solved, taus)}
         if values is not None:
             seed_means = its.astype(np.float64).mean(axis=1)
-            m_its, se_its = _mean_se(seed_means)
+            m_its, se_its = mean_se(seed_means)
             overall_its[name], overall_ret[name] = float(its.mean()), float(per_task_return.mean())
             entry.update({"method": method, "grid": {k: _jsonable_value(v) for k, v in values.items()},
                           "overall": {"iterations_to_success_mean": _json_float(m_its),
@@ -269,7 +166,7 @@ def summarize(description: dict, raws: dict, baseline: Optional[str] = None) -> 
         results["best"] = best
     baseline = baseline or default_baseline(run["methods"])
     if baseline is not None and baseline not in run["methods"]:
-        raise experiment.RunError(f"--baseline {baseline}: not a method of this run; its methods: "
+        raise RunError(f"--baseline {baseline}: not a method of this run; its methods: "
                                   f"{', '.join(run['methods'])}")
     if baseline is not None:
         base = raws[best[baseline]].task.iterations.mean(axis=1)
@@ -277,7 +174,7 @@ def summarize(description: dict, raws: dict, baseline: Optional[str] = None) -> 
             "baseline": best[baseline],
             "statistic": "per-seed mean iterations-to-success over the sequence"
                          + (", each method at its best grid point" if "grid" in description else ""),
-            "against": {best[m]: significance(base, raws[best[m]].task.iterations.mean(axis=1))
+            "against": {best[m]: statistics.significance(base, raws[best[m]].task.iterations.mean(axis=1))
                         for m in run["methods"] if m != baseline}}
         results["significance"]["probability_of_improvement"] = {
             best[m]: probability_of_improvement(raws[best[m]], raws[best[baseline]], best[baseline])
@@ -290,15 +187,6 @@ def summarize(description: dict, raws: dict, baseline: Optional[str] = None) -> 
     return results
 
 
-FT_REFERENCE = "ppo"
-"""The reference of forward transfer: PPO from scratch on every task (Continual World's single-task reference)."""
-
-
-def profile_taus(horizon: int, points: int = 100) -> np.ndarray:
-    """The τ grid of the performance profiles: at most ``points`` integers from 1 to ``horizon``, both included."""
-    return np.unique(np.linspace(1, horizon, min(horizon, points)).round().astype(np.int64))
-
-
 def _rows(x, digits: int = 6):
     """A float array as nested lists, NaN as None."""
     x = np.asarray(x, np.float64)
@@ -309,7 +197,7 @@ def _rows(x, digits: int = 6):
 
 def _over_seeds(per_seed) -> dict:
     """{"mean", "se"} over seeds of a f[S] (NaN skipped)."""
-    mean, se = _mean_se(np.asarray(per_seed, np.float64))
+    mean, se = mean_se(np.asarray(per_seed, np.float64))
     return {"mean": _json_float(mean), "se": _json_float(se)}
 
 
@@ -328,21 +216,9 @@ def learnt_summary(raw: results_.RawResults) -> dict:
                         "(--learnt-eval end)"}
         return {"forgetting": note, "average_performance": note}
     after = [int(raw.heldout_after_tasks[p]) for p in rows]
-
-    def forgetting_at(p):
-        return cm.forgetting(learnt.success_rate, later.success_rate[:, p], learnt.valid & later.valid[:, p])
-
-    def performance_at(p):
-        return cm.average_performance(later.success_rate[:, p], later.valid[:, p])
-
     final = rows[-1]
-    f = forgetting_at(final)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        f_seed = np.nanmean(f, axis=1)
-        f_by = [np.nanmean(forgetting_at(p), axis=1) for p in rows]
-    p_seed = performance_at(final)
-    p_by = [performance_at(p) for p in rows]
+    f, f_seed, f_by, p_seed, p_by = statistics.learnt(learnt.success_rate, learnt.valid, later.success_rate,
+                                                      later.valid, rows)
     return {
         "forgetting": {
             "statistic": "per seed and task: success right after learning the task − success on it after "
@@ -352,7 +228,7 @@ def learnt_summary(raw: results_.RawResults) -> dict:
             "success_when_learnt": _rows(np.where(learnt.valid, learnt.success_rate, np.nan)),
             "final_success": _rows(np.where(later.valid[:, final], later.success_rate[:, final], np.nan)),
             "per_task": _rows(f),
-            "per_task_mean": _rows(_mean_se(f)[0]),
+            "per_task_mean": _rows(mean_se(f)[0]),
             **_over_seeds(f_seed),
             "by_evaluation": {"after_tasks": after, "mean": [_over_seeds(x)["mean"] for x in f_by],
                               "se": [_over_seeds(x)["se"] for x in f_by]},
@@ -370,7 +246,7 @@ def learnt_summary(raw: results_.RawResults) -> dict:
             "statistic": "mean over seeds of the success on each task (columns) at each evaluation (rows: after "
                          "after_tasks tasks); null: not learnt by then",
             "after_tasks": after,
-            "mean": _rows(np.stack([_mean_se(np.where(later.valid[:, p], later.success_rate[:, p], np.nan))[0]
+            "mean": _rows(np.stack([mean_se(np.where(later.valid[:, p], later.success_rate[:, p], np.nan))[0]
                                     for p in rows])),
         },
     }
@@ -385,16 +261,8 @@ def forward_transfer_summary(raw: results_.RawResults, reference_raw: Optional[r
     if reference_raw is None:
         return {"reference": None, "note": f"not measured: no {FT_REFERENCE} (from scratch) in this run; merge a run "
                                            f"of {FT_REFERENCE} with the same options (experiments/merge_runs.py)"}
-    per_iteration = raw.task.per_iteration
-    n = per_iteration.valid.shape[1]
-    a = cm.auc(per_iteration.success_rate, per_iteration.valid, horizon)
-    ref = reference_raw.task.per_iteration
-    ref_a = cm.reference_by_task(cm.auc(ref.success_rate, ref.valid, horizon), ids[:, :ref.valid.shape[1]],
-                                 ids[:, :n])
-    ft = cm.forward_transfer(a, ref_a)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        ft_seed = np.nanmean(ft, axis=1)
+    own, ref = raw.task.per_iteration, reference_raw.task.per_iteration
+    a, ref_a, ft = statistics.forward_transfer(own.success_rate, own.valid, ref.success_rate, ref.valid, ids, horizon)
     return {
         "reference": reference,
         "statistic": f"per seed and task: (AUC − AUC_ref)/(1 − AUC_ref), AUC the mean success rate over {horizon} "
@@ -404,8 +272,8 @@ def forward_transfer_summary(raw: results_.RawResults, reference_raw: Optional[r
         "auc": _rows(a),
         "reference_auc": _rows(ref_a),
         "per_task": _rows(ft),
-        "per_task_mean": _rows(_mean_se(ft)[0]),
-        **_over_seeds(ft_seed),
+        "per_task_mean": _rows(mean_se(ft)[0]),
+        **_over_seeds(statistics.nanmean(ft, axis=1)),
     }
 
 
@@ -415,8 +283,7 @@ def probability_of_improvement(raw: results_.RawResults, baseline_raw: results_.
     return {"over": baseline,
             "statistic": f"P(iterations-to-success < {baseline}'s; ties count 1/2) per task over pairs of seeds "
                          "(Mann-Whitney), averaged over tasks; 95% stratified-bootstrap interval",
-            **cm.probability_of_improvement_ci(-raw.task.iterations.astype(np.float64),
-                                               -baseline_raw.task.iterations.astype(np.float64))}
+            **statistics.probability_of_fewer_iterations(raw.task.iterations, baseline_raw.task.iterations)}
 
 
 def meta_summary(meta) -> dict:
@@ -479,7 +346,7 @@ def _plots(results: dict, raws: dict, directory: str) -> list[str]:
         written.append(path)
 
     def band(ax, x, values, label):
-        mean, se = _mean_se(values)
+        mean, se = mean_se(values)
         ax.plot(x, mean, marker="o", ms=3, label=label)
         ax.fill_between(x, mean - se, mean + se, alpha=0.25)
 
@@ -546,9 +413,9 @@ def _plots(results: dict, raws: dict, directory: str) -> list[str]:
     for k_, (name, m) in enumerate(methods_.items()):
         h = m["heldout"]
         if h["budget"] > 0:
-            mean, se = _mean_se(np.asarray(h["iterations_to_success_mean"]))
+            mean, se = mean_se(np.asarray(h["iterations_to_success_mean"]))
             ax_its.errorbar(h["after_tasks"], mean, yerr=se, marker="o", ms=3, color=f"C{k_}", label=name)
-        mean, se = _mean_se(np.asarray(h["adapted_return"]))
+        mean, se = mean_se(np.asarray(h["adapted_return"]))
         ax.errorbar(h["after_tasks"], mean, yerr=se, marker="o", ms=3, color=f"C{k_}",
                     label=f"{name} after {h['adaptation_iterations']} iterations")
         ax.plot(h["after_tasks"], np.mean(h["zero_shot_return"], axis=0), ls=":", color=f"C{k_}",
@@ -719,7 +586,7 @@ def read_description(out: str) -> dict:
     """The ``run.json`` of run directory ``out``; RunError if it has none."""
     run_json = os.path.join(out, "run.json")
     if not os.path.isfile(run_json):
-        raise experiment.RunError(f"{out} is not a run directory (no run.json)")
+        raise RunError(f"{out} is not a run directory (no run.json)")
     with open(run_json) as f:
         return json.load(f)
 
@@ -735,10 +602,10 @@ def read_raws(out: str, description: dict, partial: bool = False) -> tuple[dict,
         if raw is None and partial:
             raw = results_.load_partial(out, name)
             if raw is None:
-                raise experiment.RunError(f"{out}: {name} has not finished a chunk of tasks yet; nothing to report")
+                raise RunError(f"{out}: {name} has not finished a chunk of tasks yet; nothing to report")
         if raw is None:
-            raise experiment.RunError(f"{out}: {name} has not finished; continue the run with --resume, or report "
-                                      "the tasks every method has finished with --partial")
+            raise RunError(f"{out}: {name} has not finished; continue the run with --resume, or report "
+                           "the tasks every method has finished with --partial")
         raws[name], done[name] = raw, results_.tasks_done(raw)
     num_tasks = int(description["run"]["num_tasks"])
     common = min(done.values())
