@@ -2,8 +2,8 @@
 
 Everything here is computed from ``run.json`` and ``raw/<entry>.npz`` (``jcomps.results.RawResults``), so
 ``python experiments/report.py RUN_DIR`` regenerates all of it at any time. This module reads the run directory,
-builds ``results.json`` (``summarize``), the plots and the markdown tables, and writes them; the arithmetic is in
-``jcomps.statistics``.
+builds ``results.json`` (``summarize``) and the markdown tables, and writes them; the arithmetic is in
+``jcomps.statistics`` and the figures are drawn by ``jcomps.plots``.
 
 Metrics (SPEC, "Metrics a user expects"):
 
@@ -44,7 +44,7 @@ from typing import Optional
 
 import numpy as np
 
-from jcomps import cli, envs, methods, rundir, statistics
+from jcomps import cli, envs, methods, plots, rundir, statistics
 from jcomps import continual_metrics as cm
 from jcomps import results as results_
 from jcomps import grid as grids
@@ -324,178 +324,6 @@ def meta_summary(meta) -> dict:
     return out
 
 
-def _plots(results: dict, raws: dict, directory: str) -> list[str]:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.ticker import MaxNLocator
-
-    os.makedirs(directory, exist_ok=True)
-    written = []
-    title = "{family}, {sequence}, {seeds} seeds".format(**results["description"]["run"])
-    if "best" in results:  # a grid: each method's best point
-        title += ", best grid points"
-        results = {**results, "methods": {k: results["methods"][k] for k in results["best"].values()}}
-        raws = {k: raws[k] for k in results["best"].values()}
-
-    def save(fig, name):
-        path = os.path.join(directory, name)
-        fig.savefig(path + ".tmp.png", dpi=110, bbox_inches="tight")
-        os.replace(path + ".tmp.png", path)
-        plt.close(fig)
-        written.append(path)
-
-    def band(ax, x, values, label):
-        mean, se = mean_se(values)
-        ax.plot(x, mean, marker="o", ms=3, label=label)
-        ax.fill_between(x, mean - se, mean + se, alpha=0.25)
-
-    def integer_ticks(ax):  # task numbers and tasks learnt are whole numbers
-        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-
-    methods_ = results["methods"]
-    tasks = np.arange(1, len(next(iter(methods_.values()))["iterations_to_success"][0]) + 1)
-
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for name, m in methods_.items():
-        band(ax, tasks, np.asarray(m["iterations_to_success"]), name)
-    ax.set(xlabel="task", ylabel="iterations to success", title=f"Iterations to success ({title})")
-    integer_ticks(ax)
-    ax.legend()
-    save(fig, "iterations_to_success.png")
-
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for name, m in methods_.items():
-        band(ax, tasks, np.asarray(m["env_steps_to_success"]), name)
-    ax.set(xlabel="task", ylabel="env steps to success", title=f"Samples to success ({title})")
-    integer_ticks(ax)
-    ax.legend()
-    save(fig, "samples_to_success.png")
-
-    fig, ax = plt.subplots(figsize=(7, 4))
-    for k, (name, raw) in enumerate(raws.items()):
-        valid, ret = raw.task.per_iteration.valid, raw.task.per_iteration.mean_return
-        lines = [ret[s][valid[s]] for s in range(ret.shape[0])]
-        n = min(len(x) for x in lines)
-        for line in lines:
-            ax.plot(np.arange(1, len(line) + 1), line, color=f"C{k}", alpha=0.2, lw=0.7)
-        ax.plot(np.arange(1, n + 1), np.mean([x[:n] for x in lines], axis=0), color=f"C{k}", label=name)
-    ax.set(xlabel="iteration of the sequence", ylabel="mean return",
-           title="Lifelong return (thin: seeds; thick: mean while all seeds run)")
-    ax.legend()
-    save(fig, "lifelong_return.png")
-
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for name, m in methods_.items():
-        band(ax, tasks, np.asarray(m["mean_return_per_task"]), name)
-    ax.set(xlabel="task", ylabel="average return during the RL step", title="Per-task average return")
-    integer_ticks(ax)
-    ax.legend()
-    save(fig, "per_task_return.png")
-
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for name, m in methods_.items():
-        bt = np.array([[np.nan if v is None else v for v in row] for row in m["backward_transfer"]], np.float64)
-        if np.any(np.isfinite(bt)):
-            band(ax, tasks, bt, name)
-    k = results["description"]["eval"]["backward_tasks"]
-    ax.axhline(1.0, color="gray", lw=0.8, ls="--")
-    ax.set(xlabel="task", ylabel="normalized reward (1: nothing forgotten)",
-           title=f"Backward transfer on the previous {k} tasks")
-    integer_ticks(ax)
-    if ax.get_legend_handles_labels()[0]:
-        ax.legend()
-    else:  # one task (or a report cut to one): nothing learnt before it to forget
-        ax.text(0.5, 0.5, "no earlier tasks to measure", transform=ax.transAxes, ha="center", color="gray")
-    save(fig, "backward_transfer.png")
-
-    fig, (ax_its, ax) = plt.subplots(1, 2, figsize=(11, 4))
-    for k_, (name, m) in enumerate(methods_.items()):
-        h = m["heldout"]
-        if h["budget"] > 0:
-            mean, se = mean_se(np.asarray(h["iterations_to_success_mean"]))
-            ax_its.errorbar(h["after_tasks"], mean, yerr=se, marker="o", ms=3, color=f"C{k_}", label=name)
-        mean, se = mean_se(np.asarray(h["adapted_return"]))
-        ax.errorbar(h["after_tasks"], mean, yerr=se, marker="o", ms=3, color=f"C{k_}",
-                    label=f"{name} after {h['adaptation_iterations']} iterations")
-        ax.plot(h["after_tasks"], np.mean(h["zero_shot_return"], axis=0), ls=":", color=f"C{k_}",
-                label=f"{name} zero-shot")
-    budget = max(m["heldout"]["budget"] for m in methods_.values())
-    ax_its.set(xlabel="tasks learnt", ylabel=f"iterations to success (cap {budget})",
-               title="Held-out tasks: iterations to success")
-    ax.set(xlabel="tasks learnt", ylabel="mean return on held-out tasks", title="Held-out tasks: return")
-    if budget == 0:
-        ax_its.text(0.5, 0.5, "not measured (--heldout-budget 0)", ha="center", va="center", transform=ax_its.transAxes)
-    for a in (ax_its, ax):
-        integer_ticks(a)
-        if a.get_legend_handles_labels()[0]:
-            a.legend(fontsize=8)
-    save(fig, "heldout_meta_test.png")
-
-    with_meta = {name: m["meta"] for name, m in methods_.items() if "meta" in m}
-    if with_meta:
-        fig, (ax_ev, ax_rho) = plt.subplots(1, 2, figsize=(11, 4))
-        as_array = lambda x: np.array([[np.nan if v is None else v for v in row] for row in x], np.float64)  # noqa
-        for k_, (name, m) in enumerate(with_meta.items()):
-            ev, newest = as_array(m["value_ev_end"]), as_array(m["newest_value_ev_start"])
-            ax_ev.plot(tasks, np.nanmean(ev, axis=0), marker="o", ms=3, color=f"C{k_}", label=f"{name}, all heads")
-            ax_ev.plot(tasks, np.nanmean(newest, axis=0), ls=":", marker="x", ms=3, color=f"C{k_}",
-                       label=f"{name}, newest head before its first step")
-            ax_rho.plot(tasks, np.nanmean(as_array(m["rho_end"]), axis=0), marker="o", ms=3, color=f"C{k_}",
-                        label=f"{name}, all tasks")
-            ax_rho.plot(tasks, np.nanmean(as_array(m["oldest_rho_end"]), axis=0), ls=":", color=f"C{k_}",
-                        label=f"{name}, task 1")
-        ax_ev.axhline(0.0, color="gray", lw=0.8, ls="--")
-        ax_ev.set(xlabel="task", ylabel="explained variance of the returns",
-                  title="Meta step: value heads' fit to their data's returns")
-        ax_rho.set(xlabel="task", ylabel="mean clipped importance weight",
-                   title="Meta step: how much the old tasks contribute")
-        for a in (ax_ev, ax_rho):
-            integer_ticks(a)
-            a.legend(fontsize=7)
-        save(fig, "meta_health.png")
-
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for k_, (name, m) in enumerate(methods_.items()):
-        profile = m["performance_profile"]
-        ax.step(profile["tau"], profile["fraction"], where="post", color=f"C{k_}", label=name)
-        ax.fill_between(profile["tau"], profile["ci_low"], profile["ci_high"], step="post", color=f"C{k_}", alpha=0.2)
-    ax.set(xlabel="tau (iterations)", ylabel="fraction of runs solved within tau", ylim=(-0.02, 1.02),
-           title=f"Performance profile ({title})")
-    ax.legend()
-    save(fig, "performance_profile.png")
-
-    fig, (ax_f, ax_ft, ax_p) = plt.subplots(1, 3, figsize=(17, 4), gridspec_kw={"wspace": 0.3})
-    as_array = lambda x: np.array([[np.nan if v is None else v for v in row] for row in x], np.float64)  # noqa
-    for k_, (name, m) in enumerate(methods_.items()):
-        if "per_task" in m["forgetting"]:
-            band(ax_f, tasks, as_array(m["forgetting"]["per_task"]), name)
-        if "per_task" in m["forward_transfer"]:
-            band(ax_ft, tasks, as_array(m["forward_transfer"]["per_task"]), name)
-        by = m["average_performance"].get("by_evaluation")
-        if by:
-            se = [np.nan if v is None else v for v in by["se"]]
-            ax_p.errorbar(by["after_tasks"], [np.nan if v is None else v for v in by["mean"]], yerr=se, marker="o",
-                          ms=3, color=f"C{k_}", label=name)
-    some = next(iter(methods_.values()))
-    after = some["forgetting"].get("after_tasks")
-    reference = some["forward_transfer"].get("reference")
-    ax_f.set(xlabel="task", ylabel="success when learnt − success later",
-             title="Forgetting" + (f" after {after} tasks" if after else ""))
-    ax_ft.set(xlabel="task", ylabel="(AUC − AUC_ref)/(1 − AUC_ref)",
-              title=f"Forward transfer against {reference}" if reference else "Forward transfer")
-    ax_p.set(xlabel="tasks learnt", ylabel="mean success on the tasks learnt", title="Average performance")
-    for a, missing in ((ax_f, "not measured"), (ax_ft, f"no {FT_REFERENCE} in this run"), (ax_p, "not measured")):
-        a.axhline(0.0, color="gray", lw=0.8, ls="--")
-        integer_ticks(a)
-        if a.get_legend_handles_labels()[0]:
-            a.legend(fontsize=8)
-        else:
-            a.text(0.5, 0.5, missing, transform=a.transAxes, ha="center", color="gray")
-    save(fig, "continual_metrics.png")
-    return written
-
-
 def significance_table(results: dict) -> str:
     """Markdown tables: the baseline against each other method (t-test and bootstrap), and every method's IQM of
     iterations-to-success with stratified-bootstrap confidence intervals over each half of the sequence."""
@@ -624,7 +452,7 @@ def write(out: str, baseline: Optional[str] = None, partial: bool = False) -> Op
     results = summarize(description, raws, baseline)
     if cut is not None:
         results["partial"] = cut
-    results["plots"] = [os.path.relpath(p, out) for p in _plots(results, raws, os.path.join(out, "plots"))]
+    results["plots"] = [os.path.relpath(p, out) for p in plots.write(results, raws, os.path.join(out, "plots"))]
     rundir.write_json(os.path.join(out, "results.json"), results)
     table = grid_table(results)
     head = "" if cut is None else (
