@@ -2,8 +2,8 @@
 from starting ``run_sequence.py`` to its first training iteration, cold and from the compile cache.
 
 ``programs`` mode (the default) builds the runner's programs for each family × method exactly as
-``experiments/run_sequence.py`` does with its defaults (``jcomps.experiment.Programs``: members sharded over the
-devices, the default evaluations) and times apart, for each program (``jcomps.experiment.PARTS``: ``init``,
+``experiments/run_sequence.py`` does with its defaults (``jcomps.programs.Programs``: members sharded over the
+devices, the default evaluations) and times apart, for each program (``jcomps.programs.PARTS``: ``init``,
 ``learn``: one task's learning, the program a run waits for, ``evaluate_task``: the evaluations after each task,
 ``heldout``: the held-out meta-test and learnt tasks after each chunk):
 
@@ -45,7 +45,9 @@ def bench_programs(family_name: str, method: str, seeds: int, devices: int, num_
     import jax.numpy as jnp
     import numpy as np
 
-    from jcomps import continual, envs, experiment, grid as grids, methods
+    from jcomps import continual, envs, grid as grids, methods
+    from jcomps.members import eval_keys, method_keys, padded_seeds
+    from jcomps.programs import Programs
 
     family = envs.make(family_name)
     config = methods.default_config(method, family)
@@ -53,14 +55,14 @@ def bench_programs(family_name: str, method: str, seeds: int, devices: int, num_
         config = dataclasses.replace(config, max_tasks=num_tasks)
     eval_config = continual.EvalConfig().resolve(family_name)
     spec, = grids.programs(method, config, ())
-    program = experiment.Programs().get(method, family_name, spec.config, eval_config, 2, devices)
-    member_seeds = list(range(experiment.padded_seeds(seeds, devices)))
+    program = Programs().get(method, family_name, spec.config, eval_config, 2, devices)
+    member_seeds = list(range(padded_seeds(seeds, devices)))
     values = np.stack([envs.sequence_values(family, "non-stationary", s, num_tasks) for s in member_seeds])
     sequences = program.put(jax.tree.map(lambda x: x.reshape((len(member_seeds), num_tasks) + x.shape[1:]),
                                          family.tasks(values.reshape(-1))))
-    keys = program.put(experiment.eval_keys(member_seeds, 1))
+    keys = program.put(eval_keys(member_seeds, 1))
     index = program.put(np.arange(len(member_seeds), dtype=np.int32))
-    rngs = experiment.method_keys(member_seeds)
+    rngs = method_keys(member_seeds)
     states = program.init(rngs)
     heldout = envs.held_out(family)
     position = np.int32(0)

@@ -20,14 +20,16 @@ from jcomps import hostdevices
 CHILD = r"""
 import dataclasses, json, sys, time
 import jax, jax.numpy as jnp, numpy as np
-from jcomps import continual, envs, experiment, methods
+from jcomps import continual, envs, methods
+from jcomps.members import num_devices
+from jcomps.programs import Programs
 a = json.loads(sys.argv[1])
 family = envs.make(a["family"])
 config = methods.config_class(a["method"])()
 config = dataclasses.replace(config, ppo=dataclasses.replace(config.ppo, budget=a["budget"]))
 eval_config = continual.EvalConfig(backward_tasks=0, heldout_iterations=0)
-devices = experiment.num_devices(a["seeds"])
-program = experiment.Programs().get(a["method"], a["family"], config, eval_config, a["tasks"], devices)
+devices = num_devices(a["seeds"])
+program = Programs().get(a["method"], a["family"], config, eval_config, a["tasks"], devices)
 seeds = list(range(a["seeds"]))
 values = np.stack([envs.sequence_values(family, "non-stationary", s, a["tasks"]) for s in seeds])
 seqs = program.put(jax.tree.map(lambda x: x.reshape((len(seeds), a["tasks"]) + x.shape[1:]),

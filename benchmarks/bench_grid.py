@@ -42,7 +42,9 @@ def main():
     import jax.numpy as jnp
     import numpy as np
 
-    from jcomps import continual, envs, experiment, grid, methods
+    from jcomps import continual, envs, grid, methods
+    from jcomps.members import layout, num_devices
+    from jcomps.programs import Programs
 
     family = envs.make(args.family)
     cls = methods.config_class(args.method)
@@ -57,10 +59,10 @@ def main():
     prepared = {}
     for case, spec, seeds in cases:
         real = len(spec.points) * seeds
-        devices = experiment.num_devices(real)
-        _, member_seed, hparams = experiment.members(spec, seeds, 0, devices)
-        program = experiment.Programs().get(args.method, args.family, spec.config, eval_config, args.tasks, devices,
-                                      spec.traced)
+        devices = num_devices(real)
+        _, member_seed, hparams = layout(spec, seeds, 0, devices)
+        program = Programs().get(args.method, args.family, spec.config, eval_config, args.tasks, devices,
+                                 spec.traced)
         values = np.stack([envs.sequence_values(family, "non-stationary", s, args.tasks) for s in member_seed])
         seqs = program.put(jax.tree.map(lambda x: x.reshape((len(member_seed), args.tasks) + x.shape[1:]),
                                         family.tasks(values.reshape(-1))))

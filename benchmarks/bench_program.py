@@ -4,7 +4,7 @@ For each member count M (seeds, vmapped on one device) the script times, in one 
 
 - ``raw``: T_max steps of M × B fresh episodes of ``family.step`` in one jitted ``lax.scan``, precomputed
   actions (B = the method's trajectories per iteration): what the simulator alone costs;
-- ``program``: the runner's own compiled chunk program (``jcomps.experiment.Programs``) for the method, with
+- ``program``: the runner's own compiled chunk program (``jcomps.programs.Programs``) for the method, with
   the family's default config, on the first ``--tasks`` tasks of the non-stationary sequence with budget
   ``--budget`` (no backward or held-out evaluation): rollouts, PPO updates, experience stores and meta steps;
   env steps = the iterations it ran × B × T_max;
@@ -46,7 +46,9 @@ def bench(family_name: str, method: str, members: int, tasks: int, budget: int, 
     import jax.numpy as jnp
     import numpy as np
 
-    from jcomps import acting, continual, envs, experiment, methods, ppo
+    from jcomps import acting, continual, envs, methods, ppo
+    from jcomps.members import eval_keys, method_keys
+    from jcomps.programs import Programs
 
     family = envs.make(family_name)
     config = methods.default_config(method, family)
@@ -57,14 +59,14 @@ def bench(family_name: str, method: str, members: int, tasks: int, budget: int, 
     eval_config = continual.EvalConfig(backward_tasks=0, heldout_iterations=0)
 
     # The runner's chunk program, exactly as run_sequence.py builds it (one chunk = all the tasks).
-    program = experiment.Programs().get(method, family_name, config, eval_config, tasks, 1)
+    program = Programs().get(method, family_name, config, eval_config, tasks, 1)
     seeds = list(range(members))
     values = np.stack([envs.sequence_values(family, "non-stationary", 0, tasks) for _ in seeds])
     seqs = program.put(jax.tree.map(lambda x: x.reshape((members, tasks) + x.shape[1:]),
                                     family.tasks(values.reshape(-1))))
-    keys = program.put(experiment.eval_keys(seeds, 1))
+    keys = program.put(eval_keys(seeds, 1))
     idx = program.put(np.arange(members, dtype=np.int32))
-    states = program.init(experiment.method_keys(seeds))
+    states = program.init(method_keys(seeds))
     chunk_args = (states, seqs, jnp.int32(0), keys, idx)
 
     # The simulator alone, and the two parts of an iteration, on the same members and batch.

@@ -24,7 +24,8 @@ import os
 import shutil
 import sys
 
-from jcomps import experiment, report, results, rundir
+from jcomps import report, results, rundir
+from jcomps.checkpoint import RunError
 
 
 def merged_description(descriptions: list) -> dict:
@@ -42,12 +43,12 @@ def merged_description(descriptions: list) -> dict:
             if key == "run":
                 a, b = {**a, "methods": None, "chunk_tasks": None}, {**b, "methods": None, "chunk_tasks": None}
             if a != b:
-                diff = experiment._differences({key: a}, {key: b})
-                raise experiment.RunError(f"{d} is not the same study as {dirs[0]}: " + "; ".join(diff[:4]))
+                diff = rundir.differences({key: a}, {key: b})
+                raise RunError(f"{d} is not the same study as {dirs[0]}: " + "; ".join(diff[:4]))
         for name in desc["run"]["methods"]:
             if name in out["methods"]:
-                raise experiment.RunError(f"method {name} is in more than one source ({d} and an earlier one); "
-                                          "merge runs of different methods")
+                raise RunError(f"method {name} is in more than one source ({d} and an earlier one); "
+                               "merge runs of different methods")
             out["run"]["methods"].append(name)
             out["methods"][name] = desc["methods"][name]
             chunks[name] = desc["run"]["chunk_tasks"]
@@ -77,14 +78,13 @@ def merge(out: str, sources: list[str], baseline=None, methods_=None, partial: b
     later methods are still going. With ``partial``, methods that have not finished bring the tasks they have
     finished, and the report covers the tasks every method has finished (``report.read_raws``)."""
     if os.path.exists(os.path.join(out, "run.json")):
-        raise experiment.RunError(f"{out} already holds a run; merge into a new directory")
+        raise RunError(f"{out} already holds a run; merge into a new directory")
     descriptions = [(d, report.read_description(d)) for d in sources]
     if methods_:
         found = [m for _, desc in descriptions for m in desc["run"]["methods"]]
         missing = [m for m in methods_ if m not in found]
         if missing:
-            raise experiment.RunError(f"--methods {' '.join(missing)}: not in the sources; they have "
-                                      f"{', '.join(found)}")
+            raise RunError(f"--methods {' '.join(missing)}: not in the sources; they have {', '.join(found)}")
         descriptions = [(d, _only(desc, methods_)) for d, desc in descriptions]
         descriptions = [(d, desc) for d, desc in descriptions if desc["run"]["methods"]]
     description = merged_description(descriptions)
@@ -96,8 +96,8 @@ def merge(out: str, sources: list[str], baseline=None, methods_=None, partial: b
             elif partial and results.load_partial(d, entry) is not None:
                 copies.append((results.partial_path(d, entry), results.partial_path(out, entry)))
             else:
-                raise experiment.RunError(f"{d}: {entry} has not finished; continue it with --resume first"
-                                          + ("" if partial else ", or merge the tasks done so far with --partial"))
+                raise RunError(f"{d}: {entry} has not finished; continue it with --resume first"
+                               + ("" if partial else ", or merge the tasks done so far with --partial"))
     for src, dst in copies:
         os.makedirs(os.path.dirname(dst), exist_ok=True)
         shutil.copy2(src, dst)
@@ -118,7 +118,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
     try:
         merge(args.out, args.sources, args.baseline, args.methods, args.partial)
-    except experiment.RunError as err:
+    except RunError as err:
         print(f"error: {err}", file=sys.stderr)
         sys.exit(2)
     print(open(os.path.join(args.out, "significance.md")).read())

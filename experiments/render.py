@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jcomps import checkpoint, cli, continual, envs, experiment, methods, report
+from jcomps import checkpoint, cli, continual, envs, experiment, members, methods, report
 from jcomps import grid as grids
 
 
@@ -75,12 +75,12 @@ def _policies(run_dir: str, description: dict, family, spec, warn):
         raise experiment.RunError(f"{run_dir}: {spec.label} has no checkpoint yet (it writes one after every chunk "
                                   "of tasks)")
     _, tree = found
-    _, member_seed, hparams = experiment.members(spec, run["seeds"], run["seed"], description["devices"])
+    _, member_seed, hparams = members.layout(spec, run["seeds"], run["seed"], description["devices"])
 
     def make(h):
         return methods.make(spec.method, family, grids.with_traced(spec.config, h) if h else spec.config)
 
-    keys = experiment.method_keys(member_seed)
+    keys = members.method_keys(member_seed)
     if spec.traced:
         shapes = jax.eval_shape(lambda k, h: continual.init_seeds(make, k, h), keys, hparams)
     else:

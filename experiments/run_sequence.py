@@ -65,13 +65,14 @@ import numpy as np  # noqa: E402
 
 from jcomps import cli, compile_cache, continual, envs, experiment, hostdevices, methods, report  # noqa: E402
 from jcomps import grid as grids  # noqa: E402
+from jcomps.programs import Programs  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from progress import Console  # noqa: E402
 
 # This process's compiled programs: a resume or a second run in the same process (the tests) does not compile
 # again. The library keeps no such cache of its own.
-PROGRAMS = experiment.Programs()
+PROGRAMS = Programs()
 
 
 def parse_args(argv=None):

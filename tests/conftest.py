@@ -133,3 +133,32 @@ console = _script_fixture("console", "progress", "The runner's progress lines an
 runner = _script_fixture("runner", "run_sequence", "The runner (its ``parse_args`` and ``main``).")
 merge_runs = _script_fixture("merge_runs", "merge_runs", "Merging runs (its ``merge``).")
 render = _script_fixture("render", "render", "Policy replays (its ``render``).")
+
+
+# The runner's tiny end-to-end run, shared by the tests of the host loop and of the run directory
+# (test_experiment, test_rundir): every method at its smallest, comps and ppo_tl on 3 tasks, 2 seeds, a checkpoint
+# after every task.
+_TINY = ["--budget", "3", "--num-trajectories", "2", "--hidden-sizes", "8", "--num-updates", "1",
+         "--minibatch-size", "16", "--num-meta-steps", "1", "--num-outer-steps", "2", "--inner-trajectories", "2",
+         "--skilled-trajectories", "2", "--num-skilled", "2", "--num-offpolicy", "4", "--heldout-iterations", "1",
+         "--heldout-budget", "3", "--backward-tasks", "2"]
+_RUN = ["--methods", "comps", "ppo_tl", "--num-tasks", "3", "--seeds", "2", "--chunk-tasks", "1"]
+
+
+@pytest.fixture(scope="session")
+def tiny_options():
+    """Runner options that make every method as small as it goes (command-line arguments)."""
+    return list(_TINY)
+
+
+@pytest.fixture(scope="session")
+def full_run_argv(tiny_options):
+    """The options of ``full_run``: ``tiny_options``, then comps and ppo_tl on 3 tasks, 2 seeds, chunks of 1 task."""
+    return tiny_options + _RUN
+
+
+@pytest.fixture(scope="session")
+def full_run(tiny_run, full_run_argv):
+    """An uninterrupted run of ``full_run_argv`` (compiles the programs that the other tests reuse, through the
+    runner's ``PROGRAMS``); tests may resume it or copy it, never change what it holds."""
+    return tiny_run(full_run_argv, "runs")

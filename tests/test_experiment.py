@@ -1,30 +1,17 @@
-"""Tests of the experiment runner: resume equality, the results schema, checkpoints and every CLI error path."""
+"""Tests of the experiment runner's host loop (``jcomps.experiment``) and the scripts around it: resume equality,
+the results schema, checkpoints and the CLI's error paths. The tiny run they share (``full_run``) is in
+conftest.py; the run directory, the members, the programs and the console have their own test files."""
 
 import json
 import os
 import re
 import shutil
-import time
 
 import jax
 import numpy as np
 import pytest
 
-from jcomps import checkpoint, continual, experiment, report, results
-from jcomps.methods.base import TaskMetrics
-from jcomps.ppo import IterationMetrics
-
-TINY = ["--budget", "3", "--num-trajectories", "2", "--hidden-sizes", "8", "--num-updates", "1",
-        "--minibatch-size", "16", "--num-meta-steps", "1", "--num-outer-steps", "2", "--inner-trajectories", "2",
-        "--skilled-trajectories", "2", "--num-skilled", "2", "--num-offpolicy", "4", "--heldout-iterations", "1",
-        "--heldout-budget", "3", "--backward-tasks", "2"]
-RUN = ["--methods", "comps", "ppo_tl", "--num-tasks", "3", "--seeds", "2", "--chunk-tasks", "1"]
-
-
-@pytest.fixture(scope="module")
-def full_run(tiny_run):
-    """An uninterrupted run (compiles the programs that the other tests reuse)."""
-    return tiny_run(TINY + RUN, "runs")
+from jcomps import checkpoint, continual, experiment, report, results, rundir
 
 
 def _raw(out, name):
@@ -111,15 +98,16 @@ def test_learnt_tasks_are_evaluated_with_the_episodes_they_had_when_learnt(full_
         assert raw.backward_success.shape == raw.backward_returns.shape == (2, 3, 2)
 
 
-def test_killed_and_resumed_run_equals_the_uninterrupted_one(runner, full_run, tmp_path, kill_and_resume):
+def test_killed_and_resumed_run_equals_the_uninterrupted_one(runner, full_run, full_run_argv, tmp_path,
+                                                             kill_and_resume):
     # "Kill" comps after its first chunk (its checkpoint 1 exists, nothing else); ppo_tl runs on the resume.
-    kill_and_resume(runner, TINY + RUN, tmp_path / "killed", ["comps"], full_run)
+    kill_and_resume(runner, full_run_argv, tmp_path / "killed", ["comps"], full_run)
 
 
-def test_unreadable_checkpoint_falls_back_to_the_one_before(runner, full_run, tmp_path):
+def test_unreadable_checkpoint_falls_back_to_the_one_before(runner, full_run, full_run_argv, tmp_path):
     out = tmp_path / "corrupt"
-    args = runner.parse_args(TINY + RUN + ["--out", str(out)])
-    experiment.open_run_dir(str(out), experiment.describe(args.run, args.eval, args.configs), resume=False)
+    args = runner.parse_args(full_run_argv + ["--out", str(out)])
+    rundir.open_run_dir(str(out), rundir.describe(args.run, args.eval, args.configs), resume=False)
     experiment.run_method(str(out), "ppo_tl", args.run, args.eval, args.configs["ppo_tl"], resume=False,
                           programs=runner.PROGRAMS, stop_after_chunks=2)
     for path in (out / "checkpoints" / "ppo_tl" / "2").rglob("*"):
@@ -135,10 +123,10 @@ def test_unreadable_checkpoint_falls_back_to_the_one_before(runner, full_run, tm
         np.testing.assert_array_equal(a[key], b[key], err_msg=key)
 
 
-def test_no_readable_checkpoint_is_a_clear_error(runner, tmp_path):
+def test_no_readable_checkpoint_is_a_clear_error(runner, full_run_argv, tmp_path):
     out = tmp_path / "broken"
-    args = runner.parse_args(TINY + RUN + ["--out", str(out)])
-    experiment.open_run_dir(str(out), experiment.describe(args.run, args.eval, args.configs), resume=False)
+    args = runner.parse_args(full_run_argv + ["--out", str(out)])
+    rundir.open_run_dir(str(out), rundir.describe(args.run, args.eval, args.configs), resume=False)
     step = out / "checkpoints" / "ppo_tl" / "1"
     step.mkdir(parents=True)
     (step / "junk").write_text("not a checkpoint")
@@ -165,10 +153,11 @@ def test_report_regenerates_the_results(full_run, tmp_path):
         report.write(str(copy), baseline="gmps")
 
 
-def test_a_stopped_run_reports_the_tasks_every_method_has_finished(runner, merge_runs, full_run, tmp_path):
+def test_a_stopped_run_reports_the_tasks_every_method_has_finished(runner, merge_runs, full_run, full_run_argv,
+                                                                   tmp_path):
     out = tmp_path / "stopped"
-    args = runner.parse_args(TINY + RUN + ["--out", str(out)])
-    experiment.open_run_dir(str(out), experiment.describe(args.run, args.eval, args.configs), resume=False)
+    args = runner.parse_args(full_run_argv + ["--out", str(out)])
+    rundir.open_run_dir(str(out), rundir.describe(args.run, args.eval, args.configs), resume=False)
     for name, chunks in (("comps", 2), ("ppo_tl", 1)):  # stopped after 2 and 1 of the 3 tasks
         experiment.run_method(str(out), name, args.run, args.eval, args.configs[name], resume=False,
                               programs=runner.PROGRAMS, stop_after_chunks=chunks)
@@ -192,23 +181,6 @@ def test_a_stopped_run_reports_the_tasks_every_method_has_finished(runner, merge
     os.remove(results.partial_path(str(out), "ppo_tl"))
     with pytest.raises(experiment.RunError, match="ppo_tl has not finished a chunk of tasks yet"):
         report.write(str(out), partial=True)
-
-
-def test_iqm_and_its_stratified_bootstrap_interval():
-    rng = np.random.default_rng(0)
-    scores = rng.normal(50.0, 10.0, (5, 4))
-    q = report.iqm_ci(scores, samples=500)
-    flat = np.sort(scores.reshape(-1))
-    assert q["iqm"] == pytest.approx(flat[5:15].mean())  # the middle 50% of 20 values
-    assert q["ci"][0] < q["iqm"] < q["ci"][1]
-    # Outliers barely move the IQM (they move the mean).
-    spiked = scores.copy()
-    spiked[0, 0] = 1e6
-    assert abs(report.iqm(spiked) - q["iqm"]) < 5.0
-    # Seeds are resampled within each task: when every seed scores the same on a task, every resample is the same.
-    same = np.tile(np.arange(4.0), (5, 1))
-    assert report.iqm_ci(same, samples=200)["ci"] == [pytest.approx(1.5)] * 2
-    assert report.sequence_halves(6) == [(1, 3), (4, 6)] and report.sequence_halves(5) == [(1, 2), (3, 5)]
 
 
 @pytest.mark.parametrize("argv,message", [
@@ -243,31 +215,6 @@ def test_bad_options_exit_2_with_a_message(runner, argv, message, capsys):
     assert re.search(message, capsys.readouterr().err)
 
 
-def test_run_directory_errors_exit_2_and_keep_earlier_results(runner, full_run, tmp_path, capsys):
-    before = (full_run / "results.json").read_text()
-    # An output directory that holds another run.
-    with pytest.raises(SystemExit) as info:
-        runner.main(TINY + RUN + ["--out", str(full_run)])
-    assert info.value.code == 2 and "already holds a run" in capsys.readouterr().err
-    # --resume with another config names the difference.
-    with pytest.raises(SystemExit) as info:
-        runner.main(["--out", str(full_run), "--resume", "--learning-rate", "0.01"])
-    assert info.value.code == 2 and "learning_rate" in capsys.readouterr().err
-    with pytest.raises(SystemExit) as info:
-        runner.main(["--out", str(full_run), "--resume", "--seeds", "3"])
-    assert info.value.code == 2 and "seeds" in capsys.readouterr().err
-    # An impossible or unwritable --out.
-    for bad in ("/proc/x", str(full_run / "results.json" / "inside")):
-        with pytest.raises(SystemExit) as info:
-            runner.main(TINY + RUN + ["--out", bad])
-        assert info.value.code == 2 and f"--out {bad}: cannot create the run directory" in capsys.readouterr().err
-    # --resume of a directory that does not exist.
-    with pytest.raises(SystemExit) as info:
-        runner.main(["--out", str(tmp_path / "missing"), "--resume"])
-    assert info.value.code == 2 and "holds no run" in capsys.readouterr().err
-    assert (full_run / "results.json").read_text() == before
-
-
 def test_resume_of_a_finished_run_rewrites_nothing_it_has(runner, full_run, capsys):
     before = _raw(full_run, "comps")
     runner.main(["--out", str(full_run), "--resume"])
@@ -275,53 +222,6 @@ def test_resume_of_a_finished_run_rewrites_nothing_it_has(runner, full_run, caps
     after = _raw(full_run, "comps")
     for key in before:
         np.testing.assert_array_equal(before[key], after[key])
-
-
-def test_resume_fills_config_fields_added_since_the_run_was_made(runner, full_run, tmp_path, capsys):
-    old = tmp_path / "old"
-    shutil.copytree(full_run, old)
-    run_json = old / "run.json"
-    stored = json.loads(run_json.read_text())
-    del stored["methods"]["comps"]["ppo"]["entropy_coef"]  # as if made before these fields existed
-    del stored["methods"]["comps"]["warm_start"]
-    run_json.write_text(json.dumps(stored))
-    # A value other than the field's default is a difference, named, and nothing is written.
-    with pytest.raises(SystemExit) as info:
-        runner.main(["--out", str(old), "--resume", "--set", "comps.ppo.entropy_coef=0.5"])
-    assert info.value.code == 2 and "entropy_coef" in capsys.readouterr().err
-    assert json.loads(run_json.read_text()) == stored
-    # The default is what the run had: accepted, and recorded.
-    runner.main(["--out", str(old), "--resume"])
-    assert "already finished" in capsys.readouterr().out
-    assert json.loads(run_json.read_text()) == json.loads((full_run / "run.json").read_text())
-
-
-def test_resume_refuses_a_comps_run_made_before_per_task_value_networks(runner, full_run, tmp_path, capsys):
-    old = tmp_path / "old_heads"
-    shutil.copytree(full_run, old)
-    run_json = old / "run.json"
-    stored = json.loads(run_json.read_text())
-    del stored["methods"]["comps"]["meta"]["value_init"]  # as made before issue 27: its state no longer fits
-    run_json.write_text(json.dumps(stored))
-    with pytest.raises(SystemExit) as info:
-        runner.main(["--out", str(old), "--resume"])
-    err = capsys.readouterr().err
-    assert info.value.code == 2 and "value_init" in err and "start it anew" in err
-
-
-def test_resume_refuses_a_run_made_before_the_learnt_tasks_evaluations(runner, full_run, tmp_path, capsys):
-    old = tmp_path / "old_eval"
-    shutil.copytree(full_run, old)
-    run_json = old / "run.json"
-    stored = json.loads(run_json.read_text())
-    for key in ("learnt_eval", "learnt_episodes"):  # as made before issue 28: its checkpoints lack these metrics
-        del stored["eval"][key]
-    run_json.write_text(json.dumps(stored))
-    with pytest.raises(SystemExit) as info:
-        runner.main(["--out", str(old), "--resume"])
-    err = capsys.readouterr().err
-    assert info.value.code == 2 and "eval.learnt_eval" in err and "start it anew" in err
-    assert not (old / "checkpoints" / "comps-unreadable").exists()  # refused before any checkpoint was read
 
 
 def test_runs_made_before_the_learnt_tasks_evaluations_still_report(full_run, tmp_path):
@@ -387,35 +287,6 @@ def test_forward_transfer_against_a_merged_ppo_run(merge_runs, full_run, tmp_pat
     assert (tmp_path / "m" / "plots" / "continual_metrics.png").exists()
 
 
-def test_significance_matches_the_t_test_and_detects_equal_groups():
-    rng = np.random.default_rng(0)
-    x, y = rng.normal(0.0, 1.0, 8), rng.normal(3.0, 1.0, 8)
-    s = report.significance(x, y, samples=4000)
-    assert s["p_ttest"] < 0.05 and abs(s["p_bootstrap"] - s["p_ttest"]) < 0.05
-    same = report.significance(x, x + 1e-12, samples=2000)
-    assert same["p_ttest"] > 0.9 and same["p_bootstrap"] > 0.9
-    # Two seeds each: a quarter of the resamples have both groups constant (t = ±inf), which are as extreme as
-    # the data, not ignored; the bootstrap cannot then go below ~1/4.
-    tiny = report.significance(np.array([49.0, 44.2]), np.array([54.0, 60.8]), samples=4000)
-    assert tiny["p_bootstrap"] > 0.2
-
-
-def test_backward_transfer_formula():
-    # One seed, 3 tasks, budget 2: task j's first and last returns a_j, b_j; after task 2 the policy scores c.
-    ret = np.array([[[0.0, 10.0], [2.0, 6.0], [0.0, 0.0]]])
-    valid = np.array([[[True, True], [True, True], [True, False]]])
-    zeros = np.zeros_like(ret)
-    task = TaskMetrics(np.array([[2, 2, 1]]), np.ones((1, 3), bool),
-                       IterationMetrics(ret, zeros, zeros, zeros, zeros, zeros, zeros, valid))
-    raw = results.RawResults(task, np.array([[[0.0, 0.0], [5.0, 0.0], [4.0, 5.0]]]),
-                             np.array([[[False, False], [True, False], [True, True]]]), None, np.zeros(1), 0.0, 1)
-    bt = report.backward_transfer(raw)
-    assert np.isnan(bt[0, 0])
-    assert bt[0, 1] == pytest.approx((5.0 - 0.0) / (10.0 - 0.0))
-    # After task 3: previous tasks 2 (d=0, c=4) and 1 (d=1, c=5): a = (2+0)/2, b = (6+10)/2, c = 4.5.
-    assert bt[0, 2] == pytest.approx((4.5 - 1.0) / (8.0 - 1.0))
-
-
 def test_eval_config_rejects_bad_values():
     with pytest.raises(ValueError, match="heldout_iterations"):
         continual.EvalConfig(heldout_iterations=-1)
@@ -427,14 +298,7 @@ def test_eval_config_rejects_bad_values():
         continual.EvalConfig(learnt_episodes=-2)
 
 
-def test_seeds_fill_the_devices():
-    assert experiment.num_devices(4, 2) == 2 and experiment.num_devices(3, 2) == 2 and experiment.num_devices(1, 8) == 1
-    assert experiment.padded_seeds(3, 2) == 4 and experiment.padded_seeds(4, 2) == 4
-    assert experiment.padded_seeds(5, 1) == 5
-    assert experiment.padded_seeds(6, 4) == 8
-
-
-def test_two_host_devices_run_with_padded_seeds(tmp_path):
+def test_two_host_devices_run_with_padded_seeds(tiny_options, tmp_path):
     """The script itself on 2 host devices (a fresh process: the device count is set before JAX starts), with 3
     seeds: they are padded to 4, two per device, and the results hold the 3 asked for."""
     import subprocess
@@ -442,7 +306,7 @@ def test_two_host_devices_run_with_padded_seeds(tmp_path):
 
     script = os.path.join(os.path.dirname(__file__), "..", "experiments", "run_sequence.py")
     out = tmp_path / "two"
-    args = TINY + ["--methods", "ppo_tl", "--num-tasks", "2", "--seeds", "3", "--chunk-tasks", "1",
+    args = tiny_options + ["--methods", "ppo_tl", "--num-tasks", "2", "--seeds", "3", "--chunk-tasks", "1",
                    "--devices", "2", "--out", str(out)]
     proc = subprocess.run([sys.executable, script] + args, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -473,161 +337,6 @@ def test_checkpoint_round_trip_with_empty_metrics(tmp_path):
     np.testing.assert_array_equal(restored["returns"], per_task["returns"])
     assert restored["backward"].shape == (2, 4, 0)
     np.testing.assert_array_equal(checkpoint.unflatten(states, tree["states"])["w"], states["w"])
-
-
-def _keys_drawn_from(key) -> set:
-    """Keys a method can draw from its root ``key`` in the first two generations of split/fold_in."""
-    out = set()
-    for k in [key]:
-        for n in range(1, 6):
-            for child in jax.random.split(k, n):
-                out.add(tuple(np.asarray(child).tolist()))
-                out.update(tuple(np.asarray(g).tolist()) for g in jax.random.split(child, 4))
-        out.update(tuple(np.asarray(jax.random.fold_in(k, i)).tolist()) for i in range(16))
-    return out | {tuple(np.asarray(key).tolist())}
-
-
-def test_evaluation_keys_never_equal_a_key_the_method_draws():
-    seeds = [0, 1, 2]
-    eval_keys = [experiment.eval_keys(seeds, p) for p in [1, 1000, 1001, 1002, 1003]]
-    for s, method_key in enumerate(experiment.method_keys(seeds)):
-        drawn = _keys_drawn_from(method_key)
-        evaluations = {tuple(np.asarray(k[s]).tolist()) for k in eval_keys}
-        # The backward-transfer keys are folded further per task and per previous task (continual.run_chunk).
-        evaluations |= {tuple(np.asarray(jax.random.fold_in(jax.random.fold_in(eval_keys[0][s], i), d)).tolist())
-                        for i in range(4) for d in range(3)}
-        # So are the learnt tasks' evaluation keys, apart from them (continual.learnt_key).
-        learnt = {tuple(np.asarray(continual.learnt_key(eval_keys[0][s], j)).tolist()) for j in range(4)}
-        assert len(learnt) == 4 and not learnt & evaluations
-        evaluations |= learnt
-        assert not drawn & evaluations
-    # The derivation this replaces (evaluation keys folded from the method's own root) collides: the check bites.
-    root = jax.random.PRNGKey(0)
-    assert tuple(np.asarray(jax.random.fold_in(root, 1)).tolist()) in _keys_drawn_from(root)
-
-
-def _chunk_metrics(seeds, tasks, budget, nonfinite_at=None):
-    z = np.zeros((seeds, tasks, budget), np.float32)
-    valid = np.ones((seeds, tasks, budget), bool)
-    nonfinite = z.copy()
-    if nonfinite_at is not None:
-        nonfinite[nonfinite_at] = 1.0
-    task = TaskMetrics(np.full((seeds, tasks), budget, np.int32), np.zeros((seeds, tasks), bool),
-                       IterationMetrics(z - 5.0, z, z, z, z, z, nonfinite, valid))
-    return continual.ChunkMetrics(task, np.zeros((seeds, tasks, 0), np.float32), np.zeros((seeds, tasks, 0), bool))
-
-
-def _start_event(seeds=2, padding=0, **changes):
-    """The runner's ``start`` event of a CoMPS program (members: the seeds and the padding), with ``changes``."""
-    return {"event": "start", "program": "comps", "family": "cheetah_vel", "sequence": "non-stationary",
-            "num_tasks": 2, "seeds": seeds, "grid_points": 1, "padding": padding, "devices": 2, "budget": 4,
-            "chunk": 2, "start_task": 0, "members": [f"comps seed {s}" for s in range(seeds + padding)], **changes}
-
-
-def test_console_turns_runner_events_into_lines(console, tmp_path):
-    lines = []
-    show = console.Console(lines.append, str(tmp_path), interval=0.0)
-    show(_start_event(family="point_goal", sequence="stationary", seeds=3, padding=1, chunk=1))
-    show({"event": "iteration", "program": "comps", "member": 1, "task": 0, "iteration": 3, "success_rate": 0.5,
-          "mean_return": -3.0})
-    show({"event": "meta_step", "program": "comps", "member": 1, "task": 0, "meta_step": 7, "meta_steps": 125,
-          "bc_loss": 1.25})
-    show({"event": "compress_iteration", "program": "comps", "member": 0, "task": 0, "compress_iteration": 2,
-          "compress_iterations": 15, "kl": 0.5})
-    metrics = _chunk_metrics(3, 1, 4, nonfinite_at=(2, 0, 1))
-    show({"event": "chunk", "program": "comps", "entry": "comps", "start": 0, "stop": 1, "num_tasks": 2,
-          "seeds": [0, 1, 2], "metrics": metrics, "per_task": metrics})
-    show({"event": "warning", "message": "checkpoint step 2 cannot be read"})
-    show({"event": "done", "program": "comps", "seconds": 75.0})
-    assert lines[0] == ("[comps] point_goal stationary, 2 tasks, 3 seeds (+1 to fill the devices, not reported) on 2 "
-                        "device(s), budget 4, chunks of 1")
-    assert lines[1].startswith("[comps] task 1/2 iteration 3 success 0.12")
-    assert lines[2].startswith("[comps] task 1/2 meta-training step 7/125 bc loss 1.250")
-    assert lines[3].startswith("[comps] task 1/2 compress iteration 2/15 kl ")  # pnc's compress phase
-    assert lines[4] == "[comps] task 1/2 iterations-to-success per seed: [4, 4, 4] (mean 4.0)"
-    assert lines[5].startswith("error: [comps] non-finite values (NaN/inf) at seed 2, task 1, iteration 2")
-    assert lines[6] == "warning: checkpoint step 2 cannot be read" and lines[7] == "[comps] done in 1m15s"
-
-
-def test_console_says_what_compiles_and_evaluates(console, tmp_path):
-    """No silent phase: every compile says what and how long, the held-out meta-test shows its progress."""
-    lines = []
-    show = console.Console(lines.append, str(tmp_path), interval=0.0)
-    show(_start_event())
-    where = {"program": "comps", "family": "cheetah_vel", "method": "comps"}
-    show({"event": "compiling", "part": "learn", "what": "learning", **where})
-    show({"event": "compiling", "part": "learn", "what": "learning", "seconds": 20.5, **where})
-    show({"event": "compiled", "part": "learn", "what": "learning", "seconds": 95.0, "trace_seconds": 12.0,
-          **where})
-    show({"event": "compiling", "part": "heldout", "what": "held-out", **where})
-    show({"event": "compiled", "part": "heldout", "what": "held-out", "seconds": 13.5, "trace_seconds": 12.0,
-          "cached": True, **where})
-    show({"event": "evaluating", "program": "comps", "after_tasks": 0, "learnt": 0})
-    show({"event": "heldout_iteration", "program": "comps", "member": 1, "heldout_task": 7, "heldout_iteration": 3,
-          "success_rate": 0.0, "mean_return": -1.0})
-    show({"event": "evaluated", "program": "comps", "after_tasks": 0, "seconds": 42.0})
-    assert lines[1] == "[comps] compiling the learning program (cheetah_vel, comps)..."
-    assert lines[2] == "[comps] still compiling the learning program: 0m20s"
-    assert lines[3] == "[comps] learning program ready in 1m35s (tracing 12s)"
-    assert lines[4].endswith("(while the first task trains)...")
-    assert lines[5] == "[comps] held-out program ready in 0m13s (tracing 12s; from the compile cache)"
-    assert lines[6] == "[comps] held-out meta-test of the initial policies..."
-    assert lines[7].startswith("[comps] held-out meta-test: 8 held-out tasks, iteration 3 (slowest 0) | elapsed")
-    assert lines[8] == "[comps] evaluations after 0 task(s) done in 0m42s"
-
-
-def test_console_shows_the_meta_steps_health(console, tmp_path):
-    from jcomps import meta
-
-    lines = []
-    show = console.Console(lines.append, str(tmp_path), interval=0.0)
-    show(_start_event(num_tasks=3, devices=1, chunk=1, start_task=1))
-    show({"event": "meta_step", "program": "comps", "member": 0, "task": 1, "meta_step": 3, "meta_steps": 125,
-          "bc_loss": -3.0, "value_l2": 0.25, "value_ev": 0.8, "adv_abs": 0.4, "rho": 0.5})
-    assert lines[-1].startswith("[comps] task 2/3 meta-training step 3/125 bc loss -3.000 value l2 0.25 EV 0.80 "
-                                "|A| 0.4 rho 0.50")
-    # After task 2 (slot 1): slots 0 and 1 seen, slot 2 not (NaN); two seeds.
-    per_slot = lambda a, b: np.array([[[a, b, np.nan]], [[a, b, np.nan]]], np.float32)  # noqa: E731 - [S, 1, 3]
-    start = meta.SlotStats(*[per_slot(0.5, 0.5)] * 8)._replace(value_ev=per_slot(0.6, 0.2))
-    end = start._replace(value_ev=per_slot(0.7, 0.9), rho=per_slot(0.4, 0.8), value_bias=per_slot(0.1, 0.3),
-                         return_std=per_slot(1.0, 1.0))
-    steps = meta.SlotStats(*[np.zeros((2, 1, 5), np.float32)] * 8)
-    chunk = _chunk_metrics(2, 1, 4)
-    chunk = chunk._replace(task=chunk.task._replace(meta=meta.MetaMetrics(steps, start, end)))
-    show({"event": "chunk", "program": "comps", "entry": "comps", "start": 1, "stop": 2, "num_tasks": 3,
-          "seeds": [0, 1], "metrics": chunk, "per_task": chunk})
-    assert lines[-1] == ("[comps] task 2/3 meta phase: heads' EV on returns 0.40 -> 0.80 (newest head 0.20 -> 0.90), "
-                         "bias/std +0.20, mean rho 0.60 (oldest task 0.40), |A| 0.5, bc loss 0.500")
-
-
-def test_console_shows_the_learnt_tasks_success_and_forgetting(console, tmp_path):
-    lines = []
-    show = console.Console(lines.append, str(tmp_path), interval=0.0)
-    metrics = _chunk_metrics(2, 2, 3)
-    # Right after learning: seed 0 0.8 and 0.6, seed 1 1.0 and 0.6; after task 2: 0.4, 0.6 and 0.8, 0.6.
-    when = continual.Evaluation(np.zeros((2, 2), np.float32), np.array([[0.8, 0.6], [1.0, 0.6]], np.float32),
-                                np.ones((2, 2), bool))
-    per_task = metrics._replace(learnt=when)
-    now = continual.Evaluation(np.zeros((2, 2), np.float32), np.array([[0.4, 0.6], [0.8, 0.6]], np.float32),
-                               np.ones((2, 2), bool))
-    show({"event": "chunk", "program": "comps", "entry": "comps", "start": 1, "stop": 2, "num_tasks": 4,
-          "seeds": [0, 1], "metrics": per_task, "per_task": per_task, "learnt_tasks": now})
-    assert lines[-1] == ("[comps] after task 2/4: success on the 2 tasks learnt 0.60, right after learning each 0.75 "
-                         "(forgetting +0.15)")
-    # With --learnt-eval end nothing was evaluated after this chunk: no line.
-    show({"event": "chunk", "program": "comps", "entry": "comps", "start": 1, "stop": 2, "num_tasks": 4,
-          "seeds": [0, 1], "metrics": per_task, "per_task": per_task,
-          "learnt_tasks": now._replace(valid=np.zeros((2, 2), bool))})
-    assert not lines[-1].startswith("[comps] after task")
-
-
-def test_console_writes_tensorboard(console, tmp_path):
-    pytest.importorskip("tensorboardX")
-    show = console.Console(lambda line: None, str(tmp_path), tensorboard=True)
-    metrics = _chunk_metrics(2, 2, 3)
-    show({"event": "chunk", "program": "ppo_tl", "entry": "ppo_tl", "start": 0, "stop": 2, "num_tasks": 2,
-          "seeds": [0, 1], "metrics": metrics, "per_task": metrics})
-    assert any(p.name.startswith("events.out.tfevents") for p in (tmp_path / "tensorboard" / "ppo_tl").iterdir())
 
 
 def _one_method_copy(full_run, dest, name):
@@ -699,12 +408,3 @@ def test_read_latest_skips_an_unreadable_step_and_changes_nothing(full_run, tmp_
     assert step == steps[-2] and "cannot be read" in warnings[0]
     assert sorted(str(p) for p in tmp_path.rglob("*")) == before  # read-only: nothing moved or written
     assert checkpoint.read_latest(str(tmp_path / "none"), print) is None
-
-
-def test_a_long_compile_keeps_saying_so():
-    beats = []
-    with experiment._heartbeat(lambda: beats.append(1), interval=0.05):
-        time.sleep(0.3)
-    count = len(beats)
-    time.sleep(0.15)
-    assert count >= 2 and len(beats) == count  # beats while the block runs, none after

@@ -1,0 +1,223 @@
+"""The compiled programs of a method, and their cache.
+
+Per method there are four programs (``PARTS``): ``init``, ``learn`` (one task at a position of the sequence; the
+host loops over positions, so one program serves every task), ``evaluate_task`` (backward transfer and the learnt
+task, after each task) and ``heldout`` (held-out meta-test and the learnt tasks, after each chunk). Each is a
+``vmap`` over the members of a device and a ``shard_map`` over devices (``jcomps.members``: the member axis);
+traced hyperparameters enter as one scalar per member, and the method is made inside the traced function from a
+config holding it. Programs compile ahead of time (``MethodProgram.compile``, timed, with a heartbeat while XLA
+works) and live in a ``Programs`` cache owned by the caller, never in a module-level registry.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+from typing import Callable, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import PartitionSpec as P
+
+from jcomps import compile_cache, continual, envs, grid as grids, methods, progress
+
+
+HEARTBEAT_SECONDS = 20.0
+"""How often a compile that is still running says so (``compiling`` events with ``seconds``)."""
+
+
+@contextlib.contextmanager
+def _heartbeat(beat: Callable[[], None], interval: float = HEARTBEAT_SECONDS):
+    """Calls ``beat`` every ``interval`` seconds from a thread while the block runs (XLA compiles without holding
+    the GIL, so the thread gets to run)."""
+    done = threading.Event()
+
+    def loop():
+        while not done.wait(interval):
+            beat()
+
+    thread = threading.Thread(target=loop, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        done.set()
+        thread.join()
+
+
+PARTS = ("init", "learn", "evaluate_task", "heldout")
+"""The compiled programs of a method (``MethodProgram``), in the order a run first needs them."""
+
+PART_NAMES = {"init": "init", "learn": "learning", "evaluate_task": "per-task evaluation",
+              "heldout": "held-out meta-test and learnt-task evaluation"}
+"""What each program is called in progress lines."""
+
+
+class MethodProgram:
+    """The compiled programs of one method, members sharded over the devices (``PARTS``):
+
+    - ``init``: the members' initial states;
+    - ``learn``: learns the task at one position of the sequence (``continual.learn_at``); the host loops over
+      positions, one program for every task;
+    - ``evaluate_task``: the evaluations right after a task is learnt (backward transfer, the learnt task itself:
+      ``continual.evaluate_task``);
+    - ``heldout``: after a chunk of tasks, the held-out adaptation and the learnt tasks' evaluation
+      (``continual.learnt_tasks``).
+
+    Each holds the simulator once at most, so that the program on the critical path (``learn``) compiles alone and
+    the evaluation programs can compile while the first task trains (``compile``: ahead of time, timed).
+
+    ``make(hparams, progress_fn)`` makes the method from one member's dict of traced hyperparameters (empty
+    without traced grid axes) and progress hook; it runs inside each traced function, so every member learns, is
+    initialised and is evaluated with its own values. Every program takes ``hparams``, a dict of f32[members]
+    arrays (default: none). ``traces`` counts how often each program was traced (once each, however many tasks
+    run). While a program runs, every member's progress metrics (``jcomps.progress``) reach ``receiver`` (a host
+    function of one dict, set by whoever runs the program; None: dropped) with the member's index as ``member``.
+    """
+
+    def __init__(self, make: Callable[..., methods.Method], eval_config: continual.EvalConfig, chunk: int,
+                 devices: int):
+        self.make, self.chunk, self.eval_config = make, chunk, eval_config
+        self.receiver: Optional[Callable[[dict], None]] = None
+        self.traces: dict = dict.fromkeys(PARTS, 0)
+        self.compiled: dict = {}
+        """Part -> its ``jax.stages.Compiled``, once ``compile`` made it."""
+        mesh = jax.make_mesh((devices,), ("seed",), devices=jax.devices()[:devices])
+        seed = P("seed")
+
+        def learn(states, sequences, i, seed_index, hparams):
+            self.traces["learn"] += 1
+            continual.check_capacity(make({}, None), jax.tree.leaves(sequences)[0].shape[1])
+
+            def fn(s, q, m, h):
+                # The hook closes over the member's (traced) index: the method reports its task, we add who it is.
+                report = progress.host(self._receive)
+                return continual.learn_at(make(h, progress.with_fields(report, member=m)), s, q, i)
+
+            return jax.vmap(fn)(states, sequences, seed_index, hparams)
+
+        def evaluate_task(states, sequences, i, eval_keys, hparams):
+            self.traces["evaluate_task"] += 1
+            return jax.vmap(lambda s, q, k, h: continual.evaluate_task(make(h, None), eval_config, s, q, i, k))(
+                states, sequences, eval_keys, hparams)
+
+        def heldout(states, tasks, keys, sequences, learnt, eval_keys, seed_index, hparams):
+            self.traces["heldout"] += 1
+
+            def fn(s, k, q, e, m, h):
+                method = make(h, None)
+                report = progress.with_fields(progress.host(self._receive), member=m)
+                return (continual.heldout_adaptation(method, eval_config, s, tasks, k, report),
+                        continual.learnt_tasks(method, eval_config, s, q, learnt, e))
+
+            return jax.vmap(fn)(states, keys, sequences, eval_keys, seed_index, hparams)
+
+        def init(rngs, hparams):
+            self.traces["init"] += 1
+            if not hparams:
+                return continual.init_seeds(make({}, None), rngs)
+            return continual.init_seeds(lambda h: make(h, None), rngs, hparams)
+
+        shard = lambda f, specs: jax.jit(jax.shard_map(f, mesh=mesh, in_specs=specs, out_specs=seed,  # noqa: E731
+                                                       check_vma=False))
+        # Initialisation runs on one device (member by member, see continual.init_seeds), then is split over them.
+        self._init = jax.jit(init)
+        self._learn = shard(learn, (seed, seed, P(), seed, seed))
+        self._evaluate_task = shard(evaluate_task, (seed, seed, P(), seed, seed))
+        self._heldout = shard(heldout, (seed, P(), seed, seed, P(), seed, seed, seed))
+        self.sharding = jax.sharding.NamedSharding(mesh, seed)
+
+    def _receive(self, metrics: dict):
+        if self.receiver is not None:
+            self.receiver(metrics)
+
+    def compile(self, part: str, *args, notify: Optional[Callable[[dict], None]] = None):
+        """Compiles ``part`` (one of ``PARTS``) ahead of time for ``args`` (arrays or ``jax.ShapeDtypeStruct``s
+        with their shardings) unless done; ``notify`` gets ``{"event": "compiling", "part"}`` before and
+        ``{"event": "compiled", "part", "seconds", "trace_seconds"}`` after (from the persistent compile cache
+        when it holds the program: then in about a second). Returns the ``jax.stages.Compiled``."""
+        if part not in self.compiled:
+            notify = notify or _silent
+            notify({"event": "compiling", "part": part})
+            start, hits = time.time(), compile_cache.hits()
+            with _heartbeat(lambda: notify({"event": "compiling", "part": part, "seconds": time.time() - start})):
+                traced = getattr(self, "_" + part).trace(*args)
+                traced_at = time.time()
+                self.compiled[part] = traced.lower().compile()
+            notify({"event": "compiled", "part": part, "seconds": time.time() - start,
+                    "trace_seconds": traced_at - start, "cached": compile_cache.hits() > hits})
+        return self.compiled[part]
+
+    def _call(self, part, *args):
+        fn = self.compiled.get(part)
+        return fn(*args) if fn is not None else getattr(self, "_" + part)(*args)
+
+    def init(self, rngs, hparams: Optional[dict] = None):
+        """The initial states of the members (keys ``rngs``), placed on the devices."""
+        host = jax.device_put(jax.device_get((rngs, hparams or {})), jax.devices()[0])
+        return self.put(jax.device_get(self._init(*host)))
+
+    def learn(self, states, sequences, i, seed_index, hparams: Optional[dict] = None):
+        """(states, TaskMetrics [members]) after learning the task at position ``i`` (i32[]) of ``sequences``."""
+        return self._call("learn", states, sequences, i, seed_index, hparams or {})
+
+    def evaluate_task(self, states, sequences, i, eval_keys, hparams: Optional[dict] = None):
+        """``continual.TaskEvaluation`` [members] of ``states``, right after learning the task at position ``i``."""
+        return self._call("evaluate_task", states, sequences, i, eval_keys, hparams or {})
+
+    def run_chunk(self, states, sequences, start, eval_keys, seed_index, hparams: Optional[dict] = None):
+        """(states, ChunkMetrics [members, chunk]): ``learn`` then ``evaluate_task`` for the ``chunk`` positions
+        from ``start`` (an int); positions past the end of the sequence are not run and report zeros."""
+        num_tasks = jax.tree.leaves(sequences)[0].shape[1]
+        out = []
+        for i in range(int(start), int(start) + self.chunk):
+            if i >= num_tasks:
+                out.append(jax.tree.map(jnp.zeros_like, out[-1]))
+                continue
+            states, metrics = self.learn(states, sequences, np.int32(i), seed_index, hparams)
+            out.append(continual.chunk_metrics(metrics, self.evaluate_task(states, sequences, np.int32(i),
+                                                                           eval_keys, hparams)))
+        return states, jax.tree.map(lambda *x: jnp.stack(x, axis=1), *out)
+
+    def heldout(self, states, tasks, keys, sequences, learnt, eval_keys, seed_index, hparams: Optional[dict] = None):
+        """(HeldoutMetrics on ``tasks`` with ``keys``, Evaluation [members, num_tasks] of the ``learnt`` (i32[]) first
+        tasks of ``sequences`` with ``eval_keys``, the backward-transfer keys)."""
+        return self._call("heldout", states, tasks, keys, sequences, learnt, eval_keys, seed_index, hparams or {})
+
+    def put(self, tree):
+        """Places host arrays with a leading member axis on the devices, split along that axis."""
+        return jax.device_put(tree, self.sharding)
+
+
+class Programs:
+    """Compiled method programs, kept per (method, family, config, traced fields, evaluation, chunk, devices), so
+    that a resume or a second run through the same ``Programs`` does not compile again. Owned by its user (no
+    module-level cache): ``run`` makes a fresh one unless given one; each program's progress goes to the run that
+    is using it."""
+
+    def __init__(self):
+        self._programs: dict = {}
+
+    def items(self):
+        """(key, MethodProgram) pairs of the programs compiled so far."""
+        return self._programs.items()
+
+    def get(self, name, family_name, config, eval_config, chunk, devices, traced=()) -> MethodProgram:
+        """The programs of method ``name`` with ``config``; the fields in ``traced`` (a grid's traced axes) are read
+        per member from the programs' ``hparams`` argument instead of ``config``."""
+        key = (name, family_name, config, tuple(traced), eval_config, chunk, devices)
+        if key not in self._programs:
+            family = envs.make(family_name)
+
+            def make(hparams: dict, progress_fn) -> methods.Method:
+                cfg = grids.with_traced(config, hparams) if hparams else config
+                return methods.make(name, family, cfg, progress_fn=progress_fn)
+
+            self._programs[key] = MethodProgram(make, eval_config, chunk, devices)
+        return self._programs[key]
+
+
+def _silent(event: dict) -> None:
+    del event

@@ -1,0 +1,133 @@
+"""Tests of the runner's console (``experiments/progress.py``): the runner's events turned into progress lines and
+TensorBoard logs."""
+
+import numpy as np
+import pytest
+
+from jcomps import continual
+from jcomps.methods.base import TaskMetrics
+from jcomps.ppo import IterationMetrics
+
+
+def _chunk_metrics(seeds, tasks, budget, nonfinite_at=None):
+    z = np.zeros((seeds, tasks, budget), np.float32)
+    valid = np.ones((seeds, tasks, budget), bool)
+    nonfinite = z.copy()
+    if nonfinite_at is not None:
+        nonfinite[nonfinite_at] = 1.0
+    task = TaskMetrics(np.full((seeds, tasks), budget, np.int32), np.zeros((seeds, tasks), bool),
+                       IterationMetrics(z - 5.0, z, z, z, z, z, nonfinite, valid))
+    return continual.ChunkMetrics(task, np.zeros((seeds, tasks, 0), np.float32), np.zeros((seeds, tasks, 0), bool))
+
+
+def _start_event(seeds=2, padding=0, **changes):
+    """The runner's ``start`` event of a CoMPS program (members: the seeds and the padding), with ``changes``."""
+    return {"event": "start", "program": "comps", "family": "cheetah_vel", "sequence": "non-stationary",
+            "num_tasks": 2, "seeds": seeds, "grid_points": 1, "padding": padding, "devices": 2, "budget": 4,
+            "chunk": 2, "start_task": 0, "members": [f"comps seed {s}" for s in range(seeds + padding)], **changes}
+
+
+def test_console_turns_runner_events_into_lines(console, tmp_path):
+    lines = []
+    show = console.Console(lines.append, str(tmp_path), interval=0.0)
+    show(_start_event(family="point_goal", sequence="stationary", seeds=3, padding=1, chunk=1))
+    show({"event": "iteration", "program": "comps", "member": 1, "task": 0, "iteration": 3, "success_rate": 0.5,
+          "mean_return": -3.0})
+    show({"event": "meta_step", "program": "comps", "member": 1, "task": 0, "meta_step": 7, "meta_steps": 125,
+          "bc_loss": 1.25})
+    show({"event": "compress_iteration", "program": "comps", "member": 0, "task": 0, "compress_iteration": 2,
+          "compress_iterations": 15, "kl": 0.5})
+    metrics = _chunk_metrics(3, 1, 4, nonfinite_at=(2, 0, 1))
+    show({"event": "chunk", "program": "comps", "entry": "comps", "start": 0, "stop": 1, "num_tasks": 2,
+          "seeds": [0, 1, 2], "metrics": metrics, "per_task": metrics})
+    show({"event": "warning", "message": "checkpoint step 2 cannot be read"})
+    show({"event": "done", "program": "comps", "seconds": 75.0})
+    assert lines[0] == ("[comps] point_goal stationary, 2 tasks, 3 seeds (+1 to fill the devices, not reported) on 2 "
+                        "device(s), budget 4, chunks of 1")
+    assert lines[1].startswith("[comps] task 1/2 iteration 3 success 0.12")
+    assert lines[2].startswith("[comps] task 1/2 meta-training step 7/125 bc loss 1.250")
+    assert lines[3].startswith("[comps] task 1/2 compress iteration 2/15 kl ")  # pnc's compress phase
+    assert lines[4] == "[comps] task 1/2 iterations-to-success per seed: [4, 4, 4] (mean 4.0)"
+    assert lines[5].startswith("error: [comps] non-finite values (NaN/inf) at seed 2, task 1, iteration 2")
+    assert lines[6] == "warning: checkpoint step 2 cannot be read" and lines[7] == "[comps] done in 1m15s"
+
+
+def test_console_says_what_compiles_and_evaluates(console, tmp_path):
+    """No silent phase: every compile says what and how long, the held-out meta-test shows its progress."""
+    lines = []
+    show = console.Console(lines.append, str(tmp_path), interval=0.0)
+    show(_start_event())
+    where = {"program": "comps", "family": "cheetah_vel", "method": "comps"}
+    show({"event": "compiling", "part": "learn", "what": "learning", **where})
+    show({"event": "compiling", "part": "learn", "what": "learning", "seconds": 20.5, **where})
+    show({"event": "compiled", "part": "learn", "what": "learning", "seconds": 95.0, "trace_seconds": 12.0,
+          **where})
+    show({"event": "compiling", "part": "heldout", "what": "held-out", **where})
+    show({"event": "compiled", "part": "heldout", "what": "held-out", "seconds": 13.5, "trace_seconds": 12.0,
+          "cached": True, **where})
+    show({"event": "evaluating", "program": "comps", "after_tasks": 0, "learnt": 0})
+    show({"event": "heldout_iteration", "program": "comps", "member": 1, "heldout_task": 7, "heldout_iteration": 3,
+          "success_rate": 0.0, "mean_return": -1.0})
+    show({"event": "evaluated", "program": "comps", "after_tasks": 0, "seconds": 42.0})
+    assert lines[1] == "[comps] compiling the learning program (cheetah_vel, comps)..."
+    assert lines[2] == "[comps] still compiling the learning program: 0m20s"
+    assert lines[3] == "[comps] learning program ready in 1m35s (tracing 12s)"
+    assert lines[4].endswith("(while the first task trains)...")
+    assert lines[5] == "[comps] held-out program ready in 0m13s (tracing 12s; from the compile cache)"
+    assert lines[6] == "[comps] held-out meta-test of the initial policies..."
+    assert lines[7].startswith("[comps] held-out meta-test: 8 held-out tasks, iteration 3 (slowest 0) | elapsed")
+    assert lines[8] == "[comps] evaluations after 0 task(s) done in 0m42s"
+
+
+def test_console_shows_the_meta_steps_health(console, tmp_path):
+    from jcomps import meta
+
+    lines = []
+    show = console.Console(lines.append, str(tmp_path), interval=0.0)
+    show(_start_event(num_tasks=3, devices=1, chunk=1, start_task=1))
+    show({"event": "meta_step", "program": "comps", "member": 0, "task": 1, "meta_step": 3, "meta_steps": 125,
+          "bc_loss": -3.0, "value_l2": 0.25, "value_ev": 0.8, "adv_abs": 0.4, "rho": 0.5})
+    assert lines[-1].startswith("[comps] task 2/3 meta-training step 3/125 bc loss -3.000 value l2 0.25 EV 0.80 "
+                                "|A| 0.4 rho 0.50")
+    # After task 2 (slot 1): slots 0 and 1 seen, slot 2 not (NaN); two seeds.
+    per_slot = lambda a, b: np.array([[[a, b, np.nan]], [[a, b, np.nan]]], np.float32)  # noqa: E731 - [S, 1, 3]
+    start = meta.SlotStats(*[per_slot(0.5, 0.5)] * 8)._replace(value_ev=per_slot(0.6, 0.2))
+    end = start._replace(value_ev=per_slot(0.7, 0.9), rho=per_slot(0.4, 0.8), value_bias=per_slot(0.1, 0.3),
+                         return_std=per_slot(1.0, 1.0))
+    steps = meta.SlotStats(*[np.zeros((2, 1, 5), np.float32)] * 8)
+    chunk = _chunk_metrics(2, 1, 4)
+    chunk = chunk._replace(task=chunk.task._replace(meta=meta.MetaMetrics(steps, start, end)))
+    show({"event": "chunk", "program": "comps", "entry": "comps", "start": 1, "stop": 2, "num_tasks": 3,
+          "seeds": [0, 1], "metrics": chunk, "per_task": chunk})
+    assert lines[-1] == ("[comps] task 2/3 meta phase: heads' EV on returns 0.40 -> 0.80 (newest head 0.20 -> 0.90), "
+                         "bias/std +0.20, mean rho 0.60 (oldest task 0.40), |A| 0.5, bc loss 0.500")
+
+
+def test_console_shows_the_learnt_tasks_success_and_forgetting(console, tmp_path):
+    lines = []
+    show = console.Console(lines.append, str(tmp_path), interval=0.0)
+    metrics = _chunk_metrics(2, 2, 3)
+    # Right after learning: seed 0 0.8 and 0.6, seed 1 1.0 and 0.6; after task 2: 0.4, 0.6 and 0.8, 0.6.
+    when = continual.Evaluation(np.zeros((2, 2), np.float32), np.array([[0.8, 0.6], [1.0, 0.6]], np.float32),
+                                np.ones((2, 2), bool))
+    per_task = metrics._replace(learnt=when)
+    now = continual.Evaluation(np.zeros((2, 2), np.float32), np.array([[0.4, 0.6], [0.8, 0.6]], np.float32),
+                               np.ones((2, 2), bool))
+    show({"event": "chunk", "program": "comps", "entry": "comps", "start": 1, "stop": 2, "num_tasks": 4,
+          "seeds": [0, 1], "metrics": per_task, "per_task": per_task, "learnt_tasks": now})
+    assert lines[-1] == ("[comps] after task 2/4: success on the 2 tasks learnt 0.60, right after learning each 0.75 "
+                         "(forgetting +0.15)")
+    # With --learnt-eval end nothing was evaluated after this chunk: no line.
+    show({"event": "chunk", "program": "comps", "entry": "comps", "start": 1, "stop": 2, "num_tasks": 4,
+          "seeds": [0, 1], "metrics": per_task, "per_task": per_task,
+          "learnt_tasks": now._replace(valid=np.zeros((2, 2), bool))})
+    assert not lines[-1].startswith("[comps] after task")
+
+
+def test_console_writes_tensorboard(console, tmp_path):
+    pytest.importorskip("tensorboardX")
+    show = console.Console(lambda line: None, str(tmp_path), tensorboard=True)
+    metrics = _chunk_metrics(2, 2, 3)
+    show({"event": "chunk", "program": "ppo_tl", "entry": "ppo_tl", "start": 0, "stop": 2, "num_tasks": 2,
+          "seeds": [0, 1], "metrics": metrics, "per_task": metrics})
+    assert any(p.name.startswith("events.out.tfevents") for p in (tmp_path / "tensorboard" / "ppo_tl").iterdir())
