@@ -1,6 +1,6 @@
 """What the runner shows and logs: progress lines, per-task results and TensorBoard, from the events of
-``jcomps.experiment`` (its one ``progress_fn`` callback). Host work lives here, at the edge: nothing under
-``src/jcomps`` prints.
+``jcomps.experiment`` (its one ``progress_fn`` callback; every kind of event: ``experiment.EVENTS``). Host work
+lives here, at the edge: nothing under ``src/jcomps`` prints.
 """
 
 from __future__ import annotations
@@ -11,6 +11,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from jcomps import experiment
 from jcomps.checkpoint import RunError
 
 
@@ -134,7 +135,8 @@ def _clock(seconds: float) -> str:
 class Console:
     """A ``jcomps.experiment.ProgressReceiver``: prints progress lines (at most every ``interval`` seconds per
     program), every task's iterations-to-success, non-finite warnings and checkpoint warnings through ``log``; with
-    ``tensorboard``, also writes TensorBoard logs under ``out/tensorboard/<entry>``."""
+    ``tensorboard``, also writes TensorBoard logs under ``out/tensorboard/<entry>``. Each kind of event
+    (``jcomps.experiment.EVENTS``) has its handler; kinds it does not show are ignored."""
 
     def __init__(self, log: Callable[[str], None] = print, out: Optional[str] = None, tensorboard: bool = False,
                  interval: float = 10.0):
@@ -143,79 +145,115 @@ class Console:
         self.writers: dict = {}
         if tensorboard:
             _tensorboard_writer_class()  # fail before anything runs if tensorboardX is missing
+        self.handlers = {
+            experiment.START: self._start, experiment.COMPILING: self._compiling,
+            experiment.STILL_COMPILING: self._still_compiling, experiment.COMPILED: self._compiled,
+            experiment.RESUMED: self._resumed, experiment.EVALUATING: self._evaluating,
+            experiment.EVALUATED: self._evaluated, experiment.WARNING: self._warning, experiment.CHUNK: self._chunk,
+            experiment.DONE: self._done, experiment.SKIPPED: self._skipped,
+        }
+        # Progress inside a program's chunk, shown by its ``Progress`` once the program has started.
+        self.member_handlers = {
+            experiment.ITERATION: self._iteration, experiment.META_STEP: self._meta_step,
+            experiment.COMPRESS_ITERATION: self._compress_iteration,
+            experiment.HELDOUT_ITERATION: self._heldout_iteration,
+        }
 
     def __call__(self, event: dict):
-        kind = event["event"]
-        name = event.get("program")
-        if kind == "start":
-            extra = f" (+{event['padding']} to fill the devices, not reported)" if event["padding"] else ""
-            points = event["grid_points"]
-            grid_text = f" × {points} grid points = {points * event['seeds']} members" if points > 1 else ""
-            self.log(f"[{name}] {event['family']} {event['sequence']}, {event['num_tasks']} tasks, {event['seeds']} "
-                     f"seeds{grid_text}{extra} on {event['devices']} device(s), budget {event['budget']}, chunks of "
-                     f"{event['chunk']}")
-            self.progress[name] = Progress(name, len(event["members"]), event["num_tasks"], event["start_task"],
-                                           self.log, self.interval, event["members"] if points > 1 else None)
-        elif kind == "compiling" and "seconds" in event:
-            self.log(f"[{name}] still compiling the {event['what']} program: {_clock(event['seconds'])}")
-        elif kind == "compiling":
-            after = " (while the first task trains)" if event["part"] in ("evaluate_task", "heldout") else ""
-            self.log(f"[{name}] compiling the {event['what']} program ({event['family']}, {event['method']}){after}...")
-        elif kind == "compiled":
-            cached = "; from the compile cache" if event.get("cached") else ""
-            self.log(f"[{name}] {event['what']} program ready in {_clock(event['seconds'])} (tracing "
-                     f"{event['trace_seconds']:.0f}s{cached})")
-            if event["part"] == "learn" and name in self.progress:
-                self.progress[name].restart_clock()
-        elif kind == "resumed":
-            self.log(f"[{name}] resumed from checkpoint {event['step']}: {event['tasks_done']}/{event['num_tasks']} "
-                     "tasks done")
-            if name in self.progress:
-                self.progress[name].resumed(event["tasks_done"])
-        elif kind == "evaluating":
-            after = event["after_tasks"]
-            what = "the initial policies" if after == 0 else f"the policies after task {after}"
-            self.log(f"[{name}] held-out meta-test{' and learnt tasks' if event['learnt'] else ''} of {what}...")
-            if name in self.progress:
-                self.progress[name].heldout_begin()
-        elif kind == "heldout_iteration" and name in self.progress:
-            self.progress[name].record_heldout(event["member"], event["heldout_task"], event["heldout_iteration"])
-        elif kind == "evaluated":
-            self.log(f"[{name}] evaluations after {event['after_tasks']} task(s) done in {_clock(event['seconds'])}")
-        elif kind == "warning":
-            self.log(f"warning: {event['message']}")
-        elif kind == "iteration" and name in self.progress:
-            self.progress[name].record_iteration(event["member"], event["task"], event["iteration"],
-                                                 event["success_rate"])
-        elif kind == "meta_step" and name in self.progress:
-            health = (tuple(event[k] for k in ("value_l2", "value_ev", "adv_abs", "rho"))
-                      if "value_ev" in event else None)
-            self.progress[name].record_meta_step(event["member"], event["task"], event["meta_step"],
-                                                 event["meta_steps"], event["bc_loss"], health)
-        elif kind == "compress_iteration" and name in self.progress:
-            self.progress[name].record_compress(event["member"], event["task"], event["compress_iteration"],
-                                                event["compress_iterations"], event["kl"])
-        elif kind == "chunk":
-            entry, start, stop = event["entry"], event["start"], event["stop"]
-            _report_chunk(self.log, entry, event["metrics"], start, stop, event["num_tasks"])
-            learnt = event.get("learnt_tasks")
-            if learnt is not None and np.any(learnt.valid):
-                self.log(f"[{entry}] after task {stop}/{event['num_tasks']}: {learnt_text(event['per_task'], learnt)}")
-            _check_finite(self.log, entry, event["seeds"], event["metrics"].task.per_iteration.nonfinite, start)
-            if self.tensorboard:
-                if entry not in self.writers:
-                    self.writers[entry] = _tensorboard_writer_class()(os.path.join(self.out, "tensorboard", entry))
-                _log_tensorboard(self.writers[entry], event["per_task"], start, stop)
-                if learnt is not None and np.any(learnt.valid):
-                    now, then = _learnt_means(event["per_task"], learnt)
-                    self.writers[entry].add_scalar("learnt_tasks/average_performance", now, stop)
-                    self.writers[entry].add_scalar("learnt_tasks/forgetting", then - now, stop)
-                    self.writers[entry].flush()
-        elif kind == "done":
-            self.progress.pop(name, None)
-            self.log(f"[{name}] done in {_clock(event['seconds'])}")
-        elif kind == "skipped":
-            self.log(f"[{name}] already finished; skipping")
+        kind, name = event["event"], event.get("program")
+        if kind in self.handlers:
+            self.handlers[kind](name, event)
+        elif kind in self.member_handlers and name in self.progress:
+            self.member_handlers[kind](self.progress[name], event)
+
+    def _start(self, name, event):
+        extra = f" (+{event['padding']} to fill the devices, not reported)" if event["padding"] else ""
+        points = event["grid_points"]
+        grid_text = f" × {points} grid points = {points * event['seeds']} members" if points > 1 else ""
+        self.log(f"[{name}] {event['family']} {event['sequence']}, {event['num_tasks']} tasks, {event['seeds']} "
+                 f"seeds{grid_text}{extra} on {event['devices']} device(s), budget {event['budget']}, chunks of "
+                 f"{event['chunk']}")
+        self.progress[name] = Progress(name, len(event["members"]), event["num_tasks"], event["start_task"],
+                                       self.log, self.interval, event["members"] if points > 1 else None)
+
+    def _compiling(self, name, event):
+        after = " (while the first task trains)" if event["part"] in ("evaluate_task", "heldout") else ""
+        self.log(f"[{name}] compiling the {event['what']} program ({event['family']}, {event['method']}){after}...")
+
+    def _still_compiling(self, name, event):
+        self.log(f"[{name}] still compiling the {event['what']} program: {_clock(event['seconds'])}")
+
+    def _compiled(self, name, event):
+        cached = "; from the compile cache" if event.get("cached") else ""
+        self.log(f"[{name}] {event['what']} program ready in {_clock(event['seconds'])} (tracing "
+                 f"{event['trace_seconds']:.0f}s{cached})")
+        if event["part"] == "learn" and name in self.progress:
+            self.progress[name].restart_clock()
+
+    def _resumed(self, name, event):
+        self.log(f"[{name}] resumed from checkpoint {event['step']}: {event['tasks_done']}/{event['num_tasks']} "
+                 "tasks done")
+        if name in self.progress:
+            self.progress[name].resumed(event["tasks_done"])
+
+    def _evaluating(self, name, event):
+        after = event["after_tasks"]
+        what = "the initial policies" if after == 0 else f"the policies after task {after}"
+        self.log(f"[{name}] held-out meta-test{' and learnt tasks' if event['learnt'] else ''} of {what}...")
+        if name in self.progress:
+            self.progress[name].heldout_begin()
+
+    def _evaluated(self, name, event):
+        self.log(f"[{name}] evaluations after {event['after_tasks']} task(s) done in {_clock(event['seconds'])}")
+
+    def _warning(self, name, event):
+        self.log(f"warning: {event['message']}")
+
+    @staticmethod
+    def _iteration(progress: Progress, event):
+        progress.record_iteration(event["member"], event["task"], event["iteration"], event["success_rate"])
+
+    @staticmethod
+    def _meta_step(progress: Progress, event):
+        health = tuple(event[k] for k in ("value_l2", "value_ev", "adv_abs", "rho")) if "value_ev" in event else None
+        progress.record_meta_step(event["member"], event["task"], event["meta_step"], event["meta_steps"],
+                                  event["bc_loss"], health)
+
+    @staticmethod
+    def _compress_iteration(progress: Progress, event):
+        progress.record_compress(event["member"], event["task"], event["compress_iteration"],
+                                 event["compress_iterations"], event["kl"])
+
+    @staticmethod
+    def _heldout_iteration(progress: Progress, event):
+        progress.record_heldout(event["member"], event["heldout_task"], event["heldout_iteration"])
+
+    def _chunk(self, name, event):
+        entry, start, stop = event["entry"], event["start"], event["stop"]
+        _report_chunk(self.log, entry, event["metrics"], start, stop, event["num_tasks"])
+        learnt = event.get("learnt_tasks")
+        if learnt is not None and np.any(learnt.valid):
+            self.log(f"[{entry}] after task {stop}/{event['num_tasks']}: {learnt_text(event['per_task'], learnt)}")
+        _check_finite(self.log, entry, event["seeds"], event["metrics"].task.per_iteration.nonfinite, start)
+        if self.tensorboard:
+            self._log_chunk_tensorboard(entry, event, learnt)
+
+    def _log_chunk_tensorboard(self, entry, event, learnt):
+        if entry not in self.writers:
+            self.writers[entry] = _tensorboard_writer_class()(os.path.join(self.out, "tensorboard", entry))
+        _log_tensorboard(self.writers[entry], event["per_task"], event["start"], event["stop"])
+        if learnt is not None and np.any(learnt.valid):
+            now, then = _learnt_means(event["per_task"], learnt)
+            self.writers[entry].add_scalar("learnt_tasks/average_performance", now, event["stop"])
+            self.writers[entry].add_scalar("learnt_tasks/forgetting", then - now, event["stop"])
+            self.writers[entry].flush()
+
+    def _done(self, name, event):
+        self.progress.pop(name, None)
+        self.log(f"[{name}] done in {_clock(event['seconds'])}")
+
+    def _skipped(self, name, event):
+        self.log(f"[{name}] already finished; skipping")
 
 
 def _tensorboard_writer_class():

@@ -59,7 +59,7 @@ def test_console_says_what_compiles_and_evaluates(console, tmp_path):
     show(_start_event())
     where = {"program": "comps", "family": "cheetah_vel", "method": "comps"}
     show({"event": "compiling", "part": "learn", "what": "learning", **where})
-    show({"event": "compiling", "part": "learn", "what": "learning", "seconds": 20.5, **where})
+    show({"event": "still_compiling", "part": "learn", "what": "learning", "seconds": 20.5, **where})
     show({"event": "compiled", "part": "learn", "what": "learning", "seconds": 95.0, "trace_seconds": 12.0,
           **where})
     show({"event": "compiling", "part": "heldout", "what": "held-out", **where})

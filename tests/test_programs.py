@@ -2,7 +2,10 @@
 
 import time
 
-from jcomps import programs
+import jax
+import numpy as np
+
+from jcomps import continual, members, methods, programs
 
 
 def test_a_long_compile_keeps_saying_so():
@@ -12,3 +15,15 @@ def test_a_long_compile_keeps_saying_so():
     count = len(beats)
     time.sleep(0.15)
     assert count >= 2 and len(beats) == count  # beats while the block runs, none after
+
+
+def test_a_program_compiles_once_ahead_of_time_and_says_how_long_it_took():
+    program = programs.Programs().get("ppo_tl", "point_goal", methods.default_config("ppo_tl", "point_goal"),
+                                      continual.EvalConfig(), 1, 1)
+    keys = members.method_keys([0, 1])
+    times = program.compile("init", keys, {})
+    assert 0 <= times.trace_seconds <= times.seconds and not times.cached  # the compile cache is off in tests
+    assert program.compile("init", keys, {}) is None and program.traces["init"] == 1
+    # The ahead-of-time program computes what ``init`` gives.
+    for a, b in zip(jax.tree.leaves(program.compiled["init"](keys, {})), jax.tree.leaves(program.init(keys))):
+        np.testing.assert_array_equal(a, b)

@@ -36,7 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jcomps import continual, envs, grid as grids, methods, results
+from jcomps import continual, envs, grid as grids, methods, progress, results
 from jcomps.checkpoint import Checkpoints, RunError, record, unflatten  # noqa: F401 - RunError: what run raises
 from jcomps.members import eval_keys, layout, method_keys, num_devices
 from jcomps.numerics import check_field, check_finite_fields
@@ -77,35 +77,55 @@ class RunConfig:
         check_field(self.chunk_tasks >= 1, "chunk_tasks", self.chunk_tasks, "an integer >= 1")
 
 
+# The kinds of event the runner hands its ``ProgressReceiver`` (``event["event"]``); ``ProgressReceiver`` says
+# what each carries. The runner's own:
+START = "start"
+COMPILING = "compiling"
+STILL_COMPILING = "still_compiling"
+COMPILED = "compiled"
+RESUMED = "resumed"
+WARNING = "warning"
+EVALUATING = "evaluating"
+EVALUATED = "evaluated"
+CHUNK = "chunk"
+DONE = "done"
+SKIPPED = "skipped"
+# and the compiled programs' progress, passed on with its phase as the kind (``jcomps.progress``):
+ITERATION, META_STEP, COMPRESS_ITERATION = progress.ITERATION, progress.META_STEP, progress.COMPRESS_ITERATION
+HELDOUT_ITERATION, TASK = progress.HELDOUT_ITERATION, progress.TASK
+EVENTS = (START, COMPILING, STILL_COMPILING, COMPILED, RESUMED, WARNING, EVALUATING, EVALUATED, CHUNK, DONE, SKIPPED,
+          *progress.PHASES)
+"""Every kind of event."""
+
 ProgressReceiver = Callable[[dict], None]
 """The runner's one callback to the outside world (brax's ``progress_fn``), called on the host with an event dict;
-``event["event"]`` says which:
+``event["event"]`` says which (``EVENTS``):
 
-- ``start``: a program begins, before anything compiles (``program``, ``family``, ``sequence``, ``num_tasks``,
+- ``START``: a program begins, before anything compiles (``program``, ``family``, ``sequence``, ``num_tasks``,
   ``seeds``, ``grid_points``, ``padding``, ``devices``, ``budget``, ``chunk``, ``start_task``: 0, ``members``:
   each member's name);
-- ``compiling`` / ``compiled``: one of its programs (``jcomps.programs.PARTS``) is being compiled / is ready
-  (``program``, ``family``, ``method``, ``part``, ``what``: its name in words; ``compiled`` adds ``seconds``,
+- ``COMPILING`` / ``COMPILED``: one of its programs (``jcomps.programs.PARTS``) is being compiled / is ready
+  (``program``, ``family``, ``method``, ``part``, ``what``: its name in words; ``COMPILED`` adds ``seconds``,
   ``trace_seconds`` and ``cached``: whether it came from the persistent compile cache, ``jcomps.compile_cache``);
-  a compile still running repeats ``compiling`` every ``jcomps.programs.HEARTBEAT_SECONDS`` with the ``seconds``
-  so far;
-  ``learn`` compiles first and alone, the evaluation programs while the first task trains;
-- ``resumed``: it continues from a checkpoint (``program``, ``step``, ``tasks_done``, ``num_tasks``);
-- ``evaluating`` / ``evaluated``: the held-out meta-test and learnt-task evaluation after ``after_tasks`` tasks
-  (0: the initial policies, measured after the first chunk) begins / ends (``seconds``); in between,
-  ``heldout_iteration`` events give each member's adaptation progress (``member``, ``heldout_task``,
-  ``heldout_iteration``, ``success_rate``, ``mean_return``);
-- ``warning``: something was set aside (``message``), e.g. an unreadable checkpoint;
-- ``iteration`` / ``meta_step``: a member's progress inside a chunk (``program``, ``member``, ``task`` and the
+  a compile still running says so every ``jcomps.programs.HEARTBEAT_SECONDS`` with ``STILL_COMPILING`` (the same
+  fields and the ``seconds`` so far); ``learn`` compiles first and alone, the evaluation programs while the first
+  task trains;
+- ``RESUMED``: it continues from a checkpoint (``program``, ``step``, ``tasks_done``, ``num_tasks``);
+- ``EVALUATING`` / ``EVALUATED``: the held-out meta-test and learnt-task evaluation after ``after_tasks`` tasks
+  (0: the initial policies, measured after the first chunk) begins (``learnt``: how many learnt tasks it
+  evaluates) / ends (``seconds``); in between, ``HELDOUT_ITERATION`` events give each member's adaptation progress
+  (``member``, ``heldout_task``, ``heldout_iteration``, ``success_rate``, ``mean_return``);
+- ``WARNING``: something was set aside (``message``), e.g. an unreadable checkpoint;
+- ``ITERATION`` / ``META_STEP``: a member's progress inside a chunk (``program``, ``member``, ``task`` and the
   ``jcomps.progress`` metrics: ``iteration``, ``success_rate``, ``mean_return`` / ``meta_step``,
   ``meta_steps``, ``bc_loss``, ``value_l2``, ``value_ev``, ``adv_abs``, ``rho``);
-- ``compress_iteration``: the same for a compress phase of ``pnc`` (``compress_iteration``, ``compress_iterations``,
-  ``kl``);
-- ``chunk``: a chunk of tasks is done, per results entry (``program``, ``entry``, ``start``, ``stop``,
+- ``COMPRESS_ITERATION``: the same for a compress phase of ``pnc`` (``compress_iteration``,
+  ``compress_iterations``, ``kl``);
+- ``CHUNK``: a chunk of tasks is done, per results entry (``program``, ``entry``, ``start``, ``stop``,
   ``num_tasks``, ``seeds``, ``metrics``: its members' ChunkMetrics, ``per_task``: every task's so far,
   ``learnt_tasks``: the Evaluation [members, num_tasks] of every task learnt, valid False where not evaluated),
   after the checkpoint is written;
-- ``done``: the program finished (``program``, ``seconds``); ``skipped``: it had finished before (``program``).
+- ``DONE``: the program finished (``program``, ``seconds``); ``SKIPPED``: it had finished before (``program``).
 """
 
 
@@ -159,20 +179,26 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
     backward_keys = program.put(eval_keys(member_seed, 1))
     num_chunks = math.ceil(run.num_tasks / program.chunk)
 
-    def notify(event: dict):
-        """Compile events of this program, as the runner's ``compiling`` / ``compiled`` events."""
-        progress_fn({**event, "program": name, "family": run.family, "method": spec.method,
-                     "what": PART_NAMES[event["part"]]})
+    def compile_part(part: str, *args):
+        """Compiles ``part`` of the program for ``args`` unless done, saying so (``COMPILING``, ``STILL_COMPILING``
+        while it takes, ``COMPILED``)."""
+        if part in program.compiled:
+            return
+        where = {"program": name, "family": run.family, "method": spec.method, "part": part, "what": PART_NAMES[part]}
+        progress_fn({"event": COMPILING, **where})
+        times = program.compile(part, *args, waiting=lambda seconds: progress_fn({"event": STILL_COMPILING, **where,
+                                                                                   "seconds": seconds}))
+        progress_fn({"event": COMPILED, **where, **times._asdict()})
 
     member_names = [f"{points[p].key} seed {s}" for p, s in zip(member_point, member_seed)]
-    progress_fn({"event": "start", "program": name, "family": run.family, "sequence": run.sequence,
+    progress_fn({"event": START, "program": name, "family": run.family, "sequence": run.sequence,
                  "num_tasks": run.num_tasks, "seeds": run.seeds, "grid_points": len(points), "padding": padded - real,
                  "devices": devices, "budget": methods.collection(spec.config).budget_for(family),
                  "chunk": program.chunk, "start_task": 0, "members": member_names})
     init_keys = method_keys(member_seed)
     states = program.init(init_keys, hparams_host)
     # The learning program is the one a run waits for: it compiles first, alone.
-    program.compile("learn", states, sequences, np.int32(0), seed_index, hparams, notify=notify)
+    compile_part("learn", states, sequences, np.int32(0), seed_index, hparams)
     task_shapes = program.compiled["learn"].out_info[1]
     member = lambda shapes: jax.tree.map(  # noqa: E731
         lambda x: jax.ShapeDtypeStruct((padded,) + x.shape, x.dtype), shapes)
@@ -187,7 +213,7 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
     checkpoints = Checkpoints(os.path.join(out, "checkpoints", spec.directory))
     next_chunk, seconds = 0, 0.0
     if resume:
-        warn = lambda message: progress_fn({"event": "warning", "message": message})  # noqa: E731
+        warn = lambda message: progress_fn({"event": WARNING, "message": message})  # noqa: E731
         restored = checkpoints.restore_latest(record(states, per_task, heldout, 0, 0.0), warn)
         if restored is not None:
             step, tree = restored
@@ -195,7 +221,7 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
             per_task = unflatten(per_task, tree["per_task"])
             heldout = unflatten(heldout, tree["heldout"])
             next_chunk, seconds = int(tree["counters"]["next_chunk"]), float(tree["counters"]["seconds"])
-            progress_fn({"event": "resumed", "program": name, "step": step,
+            progress_fn({"event": RESUMED, "program": name, "step": step,
                          "tasks_done": min(next_chunk * program.chunk, run.num_tasks), "num_tasks": run.num_tasks})
 
     # The reported members of each point (padding members are dropped).
@@ -222,19 +248,19 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
     start_time = time.time()
     def compile_heldout(states):
         """The held-out program, compiled for arguments shaped as ``evaluate`` gives them (a no-op once done)."""
-        program.compile("heldout", states, heldout_tasks, backward_keys, sequences, np.int32(0), backward_keys,
-                        seed_index, hparams, notify=notify)
+        compile_part("heldout", states, heldout_tasks, backward_keys, sequences, np.int32(0), backward_keys,
+                     seed_index, hparams)
 
     def evaluate(states, column: int, learnt: int, keys, after: int):
         """The evaluations of ``states`` (``learnt``: the tasks to evaluate) into column ``column`` of ``heldout``
         (``after``: the tasks learnt, for the progress lines)."""
         compile_heldout(states)
-        progress_fn({"event": "evaluating", "program": name, "after_tasks": after, "learnt": learnt})
+        progress_fn({"event": EVALUATING, "program": name, "after_tasks": after, "learnt": learnt})
         began = time.time()
         out_h = jax.device_get(program.heldout(states, heldout_tasks, program.put(keys), sequences, np.int32(learnt),
                                                backward_keys, seed_index, hparams))
         jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), column), np.asarray(src)), heldout, out_h)
-        progress_fn({"event": "evaluated", "program": name, "after_tasks": after, "seconds": time.time() - began})
+        progress_fn({"event": EVALUATED, "program": name, "after_tasks": after, "seconds": time.time() - began})
         return out_h
 
     def receive(metrics: dict):
@@ -252,8 +278,7 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
             for i in range(start, stop):
                 states, learnt_metrics = program.learn(states, sequences, np.int32(i), seed_index, hparams)
                 # Dispatched without waiting: the evaluation programs compile while the task trains.
-                program.compile("evaluate_task", states, sequences, np.int32(i), backward_keys, hparams,
-                                notify=notify)
+                compile_part("evaluate_task", states, sequences, np.int32(i), backward_keys, hparams)
                 evaluation = program.evaluate_task(states, sequences, np.int32(i), backward_keys, hparams)
                 compile_heldout(states)
                 task_metrics.append(continual.chunk_metrics(learnt_metrics, evaluation))
@@ -272,7 +297,7 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
                 for key, raw in entry_raws(c + 1, elapsed).items():
                     results.save_partial(out, key, raw)
             for p, point in enumerate(points):
-                progress_fn({"event": "chunk", "program": name, "entry": point.key, "start": start, "stop": stop,
+                progress_fn({"event": CHUNK, "program": name, "entry": point.key, "start": start, "stop": stop,
                              "num_tasks": run.num_tasks, "seeds": seeds,
                              "metrics": jax.tree.map(lambda x: np.asarray(x)[slices[p]], metrics),
                              "per_task": jax.tree.map(lambda x: x[slices[p]], per_task),
@@ -286,7 +311,7 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
     raws = entry_raws(num_chunks, total)
     for key, raw in raws.items():
         results.save(out, key, raw)
-    progress_fn({"event": "done", "program": name, "seconds": total})
+    progress_fn({"event": DONE, "program": name, "seconds": total})
     return raws
 
 
@@ -304,7 +329,7 @@ def run(out: str, run_config: RunConfig, eval_config: continual.EvalConfig, meth
         for spec in grids.programs(name, method_configs[name], grid):
             done = {p.key: results.load(out, p.key) for p in spec.points} if resume else {}
             if done and all(raw is not None for raw in done.values()):
-                progress_fn({"event": "skipped", "program": spec.label})
+                progress_fn({"event": SKIPPED, "program": spec.label})
             else:
                 done = run_program(out, spec, run_config, eval_config, resume, progress_fn, programs)
             raws.update(done)

@@ -14,7 +14,7 @@ from __future__ import annotations
 import contextlib
 import threading
 import time
-from typing import Callable, Optional
+from typing import Callable, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
@@ -25,7 +25,7 @@ from jcomps import compile_cache, continual, envs, grid as grids, methods, progr
 
 
 HEARTBEAT_SECONDS = 20.0
-"""How often a compile that is still running says so (``compiling`` events with ``seconds``)."""
+"""How often a compile that is still running says so (``MethodProgram.compile``'s ``waiting``)."""
 
 
 @contextlib.contextmanager
@@ -53,6 +53,18 @@ PARTS = ("init", "learn", "evaluate_task", "heldout")
 PART_NAMES = {"init": "init", "learn": "learning", "evaluate_task": "per-task evaluation",
               "heldout": "held-out meta-test and learnt-task evaluation"}
 """What each program is called in progress lines."""
+
+
+class CompileTimes(NamedTuple):
+    """How long ``MethodProgram.compile`` took for one program."""
+
+    seconds: float
+    """From the start of tracing until the program was ready."""
+    trace_seconds: float
+    """Of which Python tracing (never cached)."""
+    cached: bool
+    """Whether XLA's part came from the persistent compile cache (``jcomps.compile_cache``): then in about a
+    second."""
 
 
 class MethodProgram:
@@ -133,22 +145,21 @@ class MethodProgram:
         if self.receiver is not None:
             self.receiver(metrics)
 
-    def compile(self, part: str, *args, notify: Optional[Callable[[dict], None]] = None):
+    def compile(self, part: str, *args, waiting: Optional[Callable[[float], None]] = None
+                ) -> Optional[CompileTimes]:
         """Compiles ``part`` (one of ``PARTS``) ahead of time for ``args`` (arrays or ``jax.ShapeDtypeStruct``s
-        with their shardings) unless done; ``notify`` gets ``{"event": "compiling", "part"}`` before and
-        ``{"event": "compiled", "part", "seconds", "trace_seconds"}`` after (from the persistent compile cache
-        when it holds the program: then in about a second). Returns the ``jax.stages.Compiled``."""
-        if part not in self.compiled:
-            notify = notify or _silent
-            notify({"event": "compiling", "part": part})
-            start, hits = time.time(), compile_cache.hits()
-            with _heartbeat(lambda: notify({"event": "compiling", "part": part, "seconds": time.time() - start})):
-                traced = getattr(self, "_" + part).trace(*args)
-                traced_at = time.time()
-                self.compiled[part] = traced.lower().compile()
-            notify({"event": "compiled", "part": part, "seconds": time.time() - start,
-                    "trace_seconds": traced_at - start, "cached": compile_cache.hits() > hits})
-        return self.compiled[part]
+        with their shardings) unless done; while it compiles, ``waiting`` gets the seconds so far every
+        ``HEARTBEAT_SECONDS``. Returns how long it took, or None when it was compiled before (the
+        ``jax.stages.Compiled`` is then in ``compiled[part]``)."""
+        if part in self.compiled:
+            return None
+        start, hits = time.time(), compile_cache.hits()
+        beat = (lambda: None) if waiting is None else (lambda: waiting(time.time() - start))
+        with _heartbeat(beat):
+            traced = getattr(self, "_" + part).trace(*args)
+            traced_at = time.time()
+            self.compiled[part] = traced.lower().compile()
+        return CompileTimes(time.time() - start, traced_at - start, compile_cache.hits() > hits)
 
     def _call(self, part, *args):
         fn = self.compiled.get(part)
@@ -217,7 +228,3 @@ class Programs:
 
             self._programs[key] = MethodProgram(make, eval_config, chunk, devices)
         return self._programs[key]
-
-
-def _silent(event: dict) -> None:
-    del event
