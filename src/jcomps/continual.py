@@ -16,7 +16,7 @@ from typing import Any, NamedTuple, Optional
 import jax
 import jax.numpy as jnp
 
-from jcomps import acting, ppo, progress
+from jcomps import acting, ppo, progress, rl_loop
 from jcomps.numerics import check_field, check_finite_fields, concrete_max
 from jcomps.progress import ProgressFn, with_fields
 from jcomps.methods import base
@@ -48,7 +48,8 @@ def run_tasks(method: Method, state: Any, tasks, progress_fn: Optional[ProgressF
     def body(state, task):
         new_state, metrics = learn(state, task)
         if progress_fn is not None:
-            progress_fn({"phase": progress.TASK, "task": state.task_index, "task_iterations": metrics.iterations, "solved": metrics.solved})
+            progress_fn({"phase": progress.TASK, "task": state.task_index, "task_iterations": metrics.iterations,
+                         "solved": metrics.solved})
         return new_state, metrics
 
     return jax.lax.scan(body, state, tasks)
@@ -209,7 +210,7 @@ def _evaluate(method: Method, state, slot, task, key, episodes: int):
     ``base.policy_for`` gives; the rollout draws from ``key``, the policy (MAML+TL's adaptation) from its fold 7."""
     policy = base.policy_for(method, state, slot, task, jax.random.fold_in(key, 7))
     traj = acting.rollout(method.family, policy, task, key, episodes, act=base.act_fn(method))
-    return jnp.mean(jnp.sum(traj.reward, axis=0)), method.family.success_rate(traj.success, traj.valid)
+    return rl_loop.episode_stats(method.family, traj)
 
 
 def _task_at(sequence, i):
@@ -357,7 +358,7 @@ def heldout_adaptation(method: Method, eval_config: EvalConfig, state, heldout_t
     if method.adapt is not None:
         def own(task, key):
             returns, success = method.adapt(state, task, key, eval_config.heldout_run)
-            first, solved = ppo.first_success(success, method.family.success_threshold, eval_config.heldout_run)
+            first, solved = rl_loop.first_success(success, method.family.success_threshold, eval_config.heldout_run)
             return HeldoutMetrics(returns[:curve], success[:curve], jnp.where(measured, first, 0).astype(jnp.int32),
                                   solved & measured)
 
@@ -370,7 +371,8 @@ def heldout_adaptation(method: Method, eval_config: EvalConfig, state, heldout_t
         report = None
         if progress_fn is not None:
             report = lambda m: progress_fn({"phase": progress.HELDOUT_ITERATION, "heldout_task": j,  # noqa: E731
-                                            "heldout_iteration": m["iteration"], "success_rate": m["success_rate"], "mean_return": m["mean_return"]})
+                                            "heldout_iteration": m["iteration"], "success_rate": m["success_rate"],
+                                            "mean_return": m["mean_return"]})
         # Iterations after the curve's end and after the first success change nothing reported: left unrun.
         out = ppo.rl_step(config, method.family, params, optimizer.init(params), task, key, stop_at_threshold=False,
                           budget=eval_config.heldout_run, run_at_least=curve, progress_fn=report)

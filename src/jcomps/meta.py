@@ -23,7 +23,8 @@ import jax.numpy as jnp
 import optax
 
 from jcomps import buffers, networks, progress, vtrace
-from jcomps.numerics import all_finite, check_field, check_finite_fields, keep_if_finite, masked_mean
+from jcomps.numerics import (all_finite, check_field, check_finite_fields, guarded_update, keep_if_finite, masked_mean,
+                             masked_standardize, masked_var, optimizer_step)
 from jcomps.progress import ProgressFn
 
 
@@ -215,9 +216,7 @@ def _vtrace_terms(config: MetaConfig, log_prob, values, bootstrap, off: buffers.
                    else jnp.ones_like(log_rhos))
         raw = targets - values
     if config.normalize_advantages:
-        mask = traj.valid * off.mask[None, :]
-        mean = masked_mean(raw, mask)
-        raw = (raw - mean) / (jnp.sqrt(masked_mean(jnp.square(raw - mean), mask)) + 1e-8)
+        raw = masked_standardize(raw, traj.valid * off.mask[None, :])
     return weights * raw, targets, weights
 
 
@@ -259,9 +258,8 @@ def fit_head(config: MetaConfig, policy, value, slot, off: buffers.OffPolicyStor
 
     def step(_, carry):
         head, opt = carry
-        g = jax.grad(loss)(head)
-        up, new_opt = optimizer.update(g, opt, head)
-        return keep_if_finite(all_finite(g), (optax.apply_updates(head, up), new_opt), (head, opt))
+        head, opt, _ = guarded_update(optimizer, jax.grad(loss)(head), opt, head)
+        return head, opt
 
     head = head_params(value, slot)
     head, _ = jax.lax.fori_loop(0, config.value_fit_steps, step, (head, optimizer.init(head)))
@@ -269,11 +267,7 @@ def fit_head(config: MetaConfig, policy, value, slot, off: buffers.OffPolicyStor
 
 
 def _explained_variance(target, prediction, mask):
-    mean = masked_mean(target, mask)
-    var = masked_mean(jnp.square(target - mean), mask)
-    err = target - prediction
-    err_var = masked_mean(jnp.square(err - masked_mean(err, mask)), mask)
-    return 1.0 - err_var / jnp.maximum(var, 1e-8)
+    return 1.0 - masked_var(target - prediction, mask) / jnp.maximum(masked_var(target, mask), 1e-8)
 
 
 def _stats(config: MetaConfig, bc, value_l2, values, bootstrap, targets, advantages, weights,
@@ -284,14 +278,13 @@ def _stats(config: MetaConfig, bc, value_l2, values, bootstrap, targets, advanta
     traj = off.traj
     mask = traj.valid * off.mask[None, :]
     returns = vtrace.discounted_returns(*_rewards_and_discounts(config, traj), bootstrap)
-    r_mean = masked_mean(returns, mask)
     return SlotStats(
         bc_loss=bc,
         value_l2=value_l2,
         value_ev=_explained_variance(returns, values, mask),
         value_ev_targets=_explained_variance(targets, values, mask),
         value_bias=masked_mean(values - returns, mask),
-        return_std=jnp.sqrt(masked_mean(jnp.square(returns - r_mean), mask)),
+        return_std=jnp.sqrt(masked_var(returns, mask)),
         adv_abs=masked_mean(jnp.abs(advantages), mask),
         rho=masked_mean(weights, mask))
 
@@ -474,10 +467,9 @@ def meta_train(config: MetaConfig, state: MetaState, stores: buffers.SequenceSto
     def apply(state: MetaState, loss, g, vg, keep=True):
         """The Adam updates applied if ``keep`` and they are finite; (state, whether they were finite)."""
         finite = all_finite((loss, g, vg))
-        up, popt = policy_opt.update(g, state.policy_opt, state.policy)
-        vup, vopt = value_opt.update(vg, state.value_opt, state.value)
-        new = MetaState(optax.apply_updates(state.policy, up), optax.apply_updates(state.value, vup), popt, vopt)
-        return keep_if_finite(finite & keep, new, state), finite
+        policy, popt = optimizer_step(policy_opt, g, state.policy_opt, state.policy)
+        value, vopt = optimizer_step(value_opt, vg, state.value_opt, state.value)
+        return keep_if_finite(finite & keep, MetaState(policy, value, popt, vopt), state), finite
 
     def report(step, stats: SlotStats):
         if progress_fn is not None:

@@ -1,5 +1,6 @@
-"""Small numerics shared by every part of jcomps (as ``optax._src.numerics`` is for optax): masked means,
-finiteness checks, the skip-if-non-finite update, and the config-field check behind every config error."""
+"""Small numerics shared by every part of jcomps (as ``optax._src.numerics`` is for optax): masked means, variances
+and standardisation, finiteness checks, the one optimiser step every method makes (``guarded_update``: skipped,
+never applied, when it is not finite), and the config-field check behind every config error."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from typing import Optional
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 
 
 def check_field(ok: bool, field: str, value, allowed: str):
@@ -36,6 +38,24 @@ def masked_mean(x, mask):
     return jnp.sum(x * mask) / jnp.maximum(jnp.sum(mask), 1.0)
 
 
+def masked_weights(mask):
+    """``mask`` divided by its count (at least 1): the weights whose dot product with ``x`` is ``x``'s masked mean,
+    for losses that weigh rows before summing them."""
+    return mask / jnp.maximum(jnp.sum(mask), 1.0)
+
+
+def masked_var(x, mask, mean=None):
+    """Variance of ``x`` over entries where ``mask`` is 1, about ``mean`` (default: the masked mean)."""
+    mean = masked_mean(x, mask) if mean is None else mean
+    return masked_mean(jnp.square(x - mean), mask)
+
+
+def masked_standardize(x, mask, eps: float = 1e-8):
+    """``x`` minus its masked mean, divided by its masked standard deviation + ``eps`` (advantage normalisation)."""
+    mean = masked_mean(x, mask)
+    return (x - mean) / (jnp.sqrt(masked_var(x, mask, mean)) + eps)
+
+
 def all_finite(tree) -> jax.Array:
     """bool[]: whether every leaf of ``tree`` is free of NaN and infinity."""
     return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree)]))
@@ -53,3 +73,20 @@ def keep_if_finite(finite: jax.Array, new, old):
     """``new`` where the bool[] ``finite`` holds, else ``old`` (same pytree structure): an update computed from a
     NaN or infinite loss or gradient is skipped, never applied (as optax's ``apply_if_finite``)."""
     return jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, old)
+
+
+def optimizer_step(optimizer: optax.GradientTransformation, grads, opt_state, params):
+    """One step of ``optimizer``: (new params, new optimiser state). Unguarded: for steps that are guarded together
+    (``keep_if_finite`` over all of them), as PEARL's three and the meta step's two."""
+    updates, opt_state = optimizer.update(grads, opt_state, params)
+    return optax.apply_updates(params, updates), opt_state
+
+
+def guarded_update(optimizer: optax.GradientTransformation, grads, opt_state, params, loss=()):
+    """One step of ``optimizer``, applied only if ``grads`` and ``loss`` (any pytree) are finite, as optax's
+    ``apply_if_finite`` (whose ``total_notfinite`` is our per-iteration ``nonfinite``). Returns (params, opt_state,
+    finite bool[]): the old ones where not finite."""
+    finite = all_finite((loss, grads))
+    new = optimizer_step(optimizer, grads, opt_state, params)
+    params, opt_state = keep_if_finite(finite, new, (params, opt_state))
+    return params, opt_state, finite

@@ -4,8 +4,9 @@ One *iteration* (the paper's "episode" on its plots) collects ``num_trajectories
 with the current policy, measures the success rate, and, unless the threshold is reached, makes
 ``num_updates`` Adam steps on the clipped-surrogate PPO loss, each on a minibatch of ``minibatch_size``
 samples (``surrogate="vanilla"`` with one full-batch step is the vanilla policy gradient of GMPS's RL step).
-The iterations run in a ``lax.while_loop``; per-iteration metrics come back as fixed-size arrays of length
-``budget`` with a validity mask, so the whole step is one compiled program.
+The iterations are ``rl_loop.iterate`` with PPO's collection and update: one ``lax.while_loop``; per-iteration
+metrics come back as fixed-size arrays of length ``budget`` with a validity mask, so the whole step is one compiled
+program.
 
 Time limits are truncations: the value of the observation reached at T_max bootstraps the return, while a
 termination (Ant Direction falling) does not.
@@ -20,10 +21,11 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from jcomps import acting, networks, progress
+from jcomps import acting, networks, rl_loop
 from jcomps.envs.base import Family
-from jcomps.numerics import all_finite, check_field, check_finite_fields, keep_if_finite, masked_mean
+from jcomps.numerics import check_field, check_finite_fields, guarded_update, masked_mean, masked_standardize
 from jcomps.progress import ProgressFn
+from jcomps.rl_loop import IterationMetrics, UpdateTerms
 
 
 @dataclasses.dataclass(frozen=True)
@@ -127,29 +129,6 @@ def family_config(family_name: str, base: Optional[PPOConfig] = None) -> PPOConf
     return dataclasses.replace(base, **FAMILY_DEFAULTS.get(family_name, {}))
 
 
-class IterationMetrics(NamedTuple):
-    """Per-iteration metrics; inside ``rl_step`` each field is f32[budget] (bool for ``valid``).
-
-    Attributes:
-      mean_return: undiscounted return per episode, averaged over the iteration's episodes.
-      success_rate: the family's success rate of the iteration.
-      policy_loss, value_loss, entropy, approx_kl: means over the iteration's gradient steps (0 when the
-        iteration reached the threshold and made no update).
-      nonfinite: 1 where the iteration produced a NaN or infinity (rollout, loss or gradient); such updates
-        are skipped, never applied.
-      valid: True for iterations that ran (the first ``iterations`` entries).
-    """
-
-    mean_return: jax.Array
-    success_rate: jax.Array
-    policy_loss: jax.Array
-    value_loss: jax.Array
-    entropy: jax.Array
-    approx_kl: jax.Array
-    nonfinite: jax.Array
-    valid: jax.Array
-
-
 class RLStepResult(NamedTuple):
     """What the RL step returns.
 
@@ -204,15 +183,13 @@ def gae(rewards, values, bootstrap_value, dones, discount: float, lambda_: float
 
 
 
-def ppo_loss(params: networks.ActorCriticParams, batch: dict, config: PPOConfig):
-    """PPO loss (clipped surrogate, or the vanilla policy gradient) on a flat minibatch; returns (loss,
-    (policy_loss, value_loss, entropy, kl))."""
+def ppo_loss(params: networks.ActorCriticParams, batch: dict, config: PPOConfig) -> tuple[jax.Array, UpdateTerms]:
+    """PPO loss (clipped surrogate, or the vanilla policy gradient) on a flat minibatch; returns (loss, its
+    UpdateTerms: policy loss, value loss, entropy, approximate KL)."""
     mask = batch["valid"]
     adv = batch["advantage"]
     if config.normalize_advantages:
-        mean = masked_mean(adv, mask)
-        std = jnp.sqrt(masked_mean(jnp.square(adv - mean), mask))
-        adv = (adv - mean) / (std + 1e-8)
+        adv = masked_standardize(adv, mask)
     log_prob = networks.policy_log_prob(params.policy, batch["obs"], batch["action"])
     log_ratio = log_prob - batch["log_prob"]
     ratio = jnp.exp(log_ratio)
@@ -225,7 +202,7 @@ def ppo_loss(params: networks.ActorCriticParams, batch: dict, config: PPOConfig)
     entropy = networks.gaussian_entropy(params.policy["log_std"])
     approx_kl = masked_mean(ratio - 1.0 - log_ratio, mask)
     loss = policy_loss + config.value_coef * value_loss - config.entropy_coef * entropy
-    return loss, (policy_loss, value_loss, entropy, approx_kl)
+    return loss, UpdateTerms(policy_loss, value_loss, entropy, approx_kl)
 
 
 
@@ -255,42 +232,41 @@ def minibatch_indices(config: PPOConfig, n: int, rng: jax.Array) -> jax.Array:
     return perms.reshape(-1)[:total].reshape(config.num_updates, minibatch)
 
 
-def first_success(success_rate: jax.Array, threshold: float, cap: int) -> tuple[jax.Array, jax.Array]:
-    """Iterations-to-success of a success-rate curve f32[n] run to the end: the first iteration (1-based) at or above
-    ``threshold``, ``cap`` if none is; and bool[], whether one is."""
-    reached = success_rate >= threshold
-    solved = jnp.any(reached)
-    return jnp.where(solved, jnp.argmax(reached).astype(jnp.int32) + 1, cap).astype(jnp.int32), solved
-
-
-def empty_metrics(budget: int) -> IterationMetrics:
-    """IterationMetrics of ``budget`` iterations, none of them run yet (zeros, ``valid`` False)."""
-    zeros = jnp.zeros((budget,), jnp.float32)
-    return IterationMetrics(zeros, zeros, zeros, zeros, zeros, zeros, zeros, jnp.zeros((budget,), bool))
-
-
-def ppo_update(config: PPOConfig, optimizer, params, opt_state, traj: acting.Trajectory, rng: jax.Array):
-    """``num_updates`` minibatch Adam steps on one iteration's batch (``flat_batch``, ``minibatch_indices``).
-
-    A step whose loss or gradient is not finite is skipped. Returns (params, opt_state, mean loss terms f32[4],
-    nonfinite f32[]).
-    """
-    flat = flat_batch(config, params, traj)
-    indices = minibatch_indices(config, flat["valid"].shape[0], rng)
-    grad_fn = jax.value_and_grad(ppo_loss, has_aux=True)
+def minibatch_steps(config: PPOConfig, optimizer, loss_fn: Callable, params, opt_state, n: int, rng: jax.Array):
+    """``num_updates`` guarded Adam steps (``numerics.guarded_update``) of ``loss_fn(params, idx) -> (loss,
+    UpdateTerms)`` on minibatches ``idx`` i32[minibatch] of ``n`` samples (``minibatch_indices``). Returns (params,
+    opt_state, the mean UpdateTerms, nonfinite bool[]: whether a step was skipped)."""
+    grad_fn = jax.value_and_grad(loss_fn, has_aux=True)
 
     def step(carry, idx):
         params, opt_state, bad = carry
-        batch = jax.tree.map(lambda x: x[idx], flat)
-        (loss, terms), grads = grad_fn(params, batch, config)
-        finite = all_finite((loss, grads))
-        updates, new_opt_state = optimizer.update(grads, opt_state, params)
-        new_params = optax.apply_updates(params, updates)
-        params, opt_state = keep_if_finite(finite, (new_params, new_opt_state), (params, opt_state))
-        return (params, opt_state, bad | ~finite), jnp.stack(terms)
+        (loss, terms), grads = grad_fn(params, idx)
+        params, opt_state, finite = guarded_update(optimizer, grads, opt_state, params, loss)
+        return (params, opt_state, bad | ~finite), terms
 
+    indices = minibatch_indices(config, n, rng)
     (params, opt_state, bad), terms = jax.lax.scan(step, (params, opt_state, jnp.array(False)), indices)
-    return params, opt_state, jnp.mean(terms, axis=0), bad.astype(jnp.float32)
+    return params, opt_state, rl_loop.mean_terms(terms), bad
+
+
+def update_obs_norm(config: PPOConfig, params: networks.ActorCriticParams, obs: jax.Array, valid: jax.Array):
+    """``params`` with its policy's running observation statistics updated with ``obs`` [T, B, obs_size] where
+    ``valid`` [T, B] (unchanged unless ``normalize_observations``)."""
+    if not config.normalize_observations:
+        return params
+    norm = networks.obs_norm_update(params.policy["obs_norm"], obs, valid)
+    return params._replace(policy={**params.policy, "obs_norm": norm})
+
+
+def ppo_update(config: PPOConfig, optimizer, params, opt_state, traj: acting.Trajectory, rng: jax.Array):
+    """``num_updates`` minibatch Adam steps on one iteration's batch (``flat_batch``, ``minibatch_steps``).
+
+    A step whose loss or gradient is not finite is skipped. Returns (params, opt_state, the mean UpdateTerms,
+    nonfinite bool[]).
+    """
+    flat = flat_batch(config, params, traj)
+    loss_fn = lambda p, idx: ppo_loss(p, jax.tree.map(lambda x: x[idx], flat), config)  # noqa: E731
+    return minibatch_steps(config, optimizer, loss_fn, params, opt_state, flat["valid"].shape[0], rng)
 
 
 ObserveFn = Callable[[Any, acting.Trajectory, jax.Array], Any]
@@ -303,65 +279,23 @@ def rl_step(config: PPOConfig, family: Family, params: networks.ActorCriticParam
     """PPO on ``task`` until the success rate reaches ``family.success_threshold`` or the budget is spent.
 
     ``observe(aux, trajectory, iteration) -> aux``, if given, sees every iteration's batch (the experience
-    stores of CoMPS are built this way) and threads ``aux`` through the loop. ``progress_fn``
-    (``jcomps.progress``), if given, gets ``{"iteration", "success_rate", "mean_return"}`` after every iteration.
-    ``stop_at_threshold=False`` runs the whole budget (fixed-budget adaptation), or with ``run_at_least`` stops
-    once the threshold has been reached and at least that many iterations ran (the metrics of the iterations run
-    are the same either way; later ones are left unrun: ``valid`` False, zeros). ``budget`` overrides the
-    config's. Jittable; ``config`` and ``family`` are static.
+    stores of CoMPS are built this way) and threads ``aux`` through the loop. ``progress_fn``, ``stop_at_threshold``
+    and ``run_at_least`` are ``rl_loop.iterate``'s. ``budget`` overrides the config's. Jittable; ``config`` and
+    ``family`` are static.
     """
     budget = config.budget_for(family) if budget is None else budget
     optimizer = make_optimizer(config)
-    metrics0 = empty_metrics(budget)
 
-    class Carry(NamedTuple):
-        params: Any
-        opt_state: Any
-        rng: jax.Array
-        it: jax.Array
-        solved: jax.Array
-        metrics: IterationMetrics
-        aux: Any
+    def collect(learner, aux, keys, it):
+        traj = acting.rollout(family, learner[0].policy, task, keys[0], config.num_trajectories)
+        aux = aux if observe is None else observe(aux, traj, it)
+        return learner, aux, rl_loop.collected(family, traj, traj)
 
-    def cond(c: Carry):
-        if stop_at_threshold:
-            return (~c.solved) & (c.it < budget)
-        if run_at_least is None:
-            return c.it < budget
-        return ((~c.solved) | (c.it < run_at_least)) & (c.it < budget)
+    def update(learner, traj, key):
+        params, opt_state, terms, bad = ppo_update(config, optimizer, *learner, traj, key)
+        return (update_obs_norm(config, params, traj.obs, traj.valid), opt_state), terms, bad
 
-    def body(c: Carry):
-        rng, k_roll, k_upd = jax.random.split(c.rng, 3)
-        traj = acting.rollout(family, c.params.policy, task, k_roll, config.num_trajectories)
-        success_rate = family.success_rate(traj.success, traj.valid)
-        mean_return = jnp.mean(jnp.sum(traj.reward, axis=0))
-        solved = c.solved | (success_rate >= family.success_threshold)  # reached at this or an earlier iteration
-        if progress_fn is not None:
-            progress_fn({"phase": progress.ITERATION, "iteration": c.it + 1, "success_rate": success_rate, "mean_return": mean_return})
-        rollout_finite = all_finite((traj.obs, traj.reward))
-        aux = c.aux if observe is None else observe(c.aux, traj, c.it)
-
-        def update(_):
-            params, opt_state, terms, bad = ppo_update(config, optimizer, c.params, c.opt_state, traj, k_upd)
-            if config.normalize_observations:
-                norm = networks.obs_norm_update(params.policy["obs_norm"], traj.obs, traj.valid)
-                params = params._replace(policy={**params.policy, "obs_norm": norm})
-            return params, opt_state, terms, bad
-
-        def skip(_):
-            return c.params, c.opt_state, jnp.zeros((4,), jnp.float32), jnp.float32(0.0)
-
-        no_update = (solved & stop_at_threshold) | ~rollout_finite
-        params, opt_state, terms, bad = jax.lax.cond(no_update, skip, update, None)
-        bad = jnp.maximum(bad, 1.0 - rollout_finite.astype(jnp.float32))
-        row = IterationMetrics(mean_return, success_rate, terms[0], terms[1], terms[2], terms[3], bad,
-                               jnp.array(True))
-        metrics = jax.tree.map(lambda m, v: m.at[c.it].set(v), c.metrics, row)
-        return Carry(params, opt_state, rng, c.it + 1, solved, metrics, aux)
-
-    init = Carry(params, opt_state, rng, jnp.int32(0), jnp.array(False), metrics0, aux)
-    out = jax.lax.while_loop(cond, body, init)
-    if not stop_at_threshold:
-        iterations, solved = first_success(out.metrics.success_rate, family.success_threshold, budget)
-        return RLStepResult(out.params, out.opt_state, out.metrics, iterations, solved, out.aux)
-    return RLStepResult(out.params, out.opt_state, out.metrics, out.it, out.solved, out.aux)
+    out = rl_loop.iterate(collect, update, (params, opt_state), rng, threshold=family.success_threshold,
+                          budget=budget, aux=aux, progress_fn=progress_fn, stop_at_threshold=stop_at_threshold,
+                          run_at_least=run_at_least)
+    return RLStepResult(*out.state, out.metrics, out.iterations, out.solved, out.aux)

@@ -21,7 +21,7 @@ import jax
 
 from jcomps import networks
 from jcomps.meta import MetaMetrics
-from jcomps.ppo import IterationMetrics
+from jcomps.rl_loop import IterationMetrics
 
 
 class TaskMetrics(NamedTuple):

@@ -34,11 +34,13 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from jcomps import acting, networks, ppo, progress
+from jcomps import acting, networks, ppo, rl_loop
 from jcomps.envs.base import Family
 from jcomps.methods.base import Method, TaskMetrics
-from jcomps.numerics import all_finite, check_field, check_finite_fields, keep_if_finite, masked_mean
+from jcomps.numerics import (all_finite, check_field, check_finite_fields, keep_if_finite, masked_mean,
+                             masked_standardize)
 from jcomps.progress import ProgressFn, with_fields
+from jcomps.rl_loop import UpdateTerms
 
 
 @dataclasses.dataclass(frozen=True)
@@ -90,8 +92,7 @@ def inner_step(config: MAMLTLConfig, policy: dict, pre: dict) -> dict:
     mask = pre["valid"]
     adv = pre["advantage"]
     if config.ppo.normalize_advantages:
-        mean = masked_mean(adv, mask)
-        adv = (adv - mean) / (jnp.sqrt(masked_mean(jnp.square(adv - mean), mask)) + 1e-8)
+        adv = masked_standardize(adv, mask)
     adv = jax.lax.stop_gradient(adv)
     log_prob = lambda p: networks.policy_log_prob(p, pre["obs"], pre["action"])  # noqa: E731
     if config.inner_objective == "lvc":
@@ -116,19 +117,20 @@ def adapt_on(config: MAMLTLConfig, family: Family, params: networks.ActorCriticP
     return inner_step(config, policy, pre), pre, traj
 
 
-def outer_loss(config: MAMLTLConfig, params: networks.ActorCriticParams, pre: dict, post: dict):
+def outer_loss(config: MAMLTLConfig, params: networks.ActorCriticParams, pre: dict, post: dict
+               ) -> tuple[jax.Array, UpdateTerms]:
     """PPO's loss of the adapted policy φ(θ) on the (minibatch of the) post-update batch ``post``, with the value
     loss averaged over ``post`` and ``pre["minibatch"]`` (the same samples' share of the pre-update batch), so the
-    value term weighs what it weighs in PPO; returns (loss, (policy loss, value loss, entropy, approx KL)). Its
-    gradient in ``params.policy`` is the MAML meta-gradient."""
+    value term weighs what it weighs in PPO; returns (loss, its UpdateTerms). Its gradient in ``params.policy`` is
+    the MAML meta-gradient."""
     adapted = networks.ActorCriticParams(inner_step(config, params.policy, pre["full"]), params.value)
-    loss, (pl, vl, ent, kl) = ppo.ppo_loss(adapted, post, config.ppo)  # its value term: value_coef · vl
+    loss, terms = ppo.ppo_loss(adapted, post, config.ppo)  # its value term: value_coef · terms.value_loss
     pre_mb = pre["minibatch"]
     pre_vl = 0.5 * masked_mean(jnp.square(networks.value_of(params, pre_mb["obs"]) - pre_mb["target"]),
                                pre_mb["valid"])
-    value_loss = 0.5 * (vl + pre_vl)
+    value_loss = 0.5 * (terms.value_loss + pre_vl)
     # (No dataclasses.replace of the config here: its fields may be traced grid values.)
-    return loss + config.ppo.value_coef * (value_loss - vl), (pl, value_loss, ent, kl)
+    return loss + config.ppo.value_coef * (value_loss - terms.value_loss), terms._replace(value_loss=value_loss)
 
 
 def make(family: Family, config: MAMLTLConfig = MAMLTLConfig(), progress_fn: Optional[ProgressFn] = None) -> Method:
@@ -142,67 +144,34 @@ def make(family: Family, config: MAMLTLConfig = MAMLTLConfig(), progress_fn: Opt
         params = ppo.init_params(pcfg, family, k)
         return MAMLTLState(params, optimizer.init(params), rng, jnp.int32(0))
 
-    def update(params, opt_state, pre, pre_traj, post_traj, rng):
+    def update(learner, batch, key):  # step 4: the outer update, then the statistics of both batches
+        params, opt_state = learner
+        pre, pre_traj, post_traj = batch
         post = ppo.flat_batch(pcfg, params, post_traj)
-        indices = ppo.minibatch_indices(pcfg, post["valid"].shape[0], rng)
-        grad_fn = jax.value_and_grad(outer_loss, argnums=1, has_aux=True)
-
-        def step(carry, idx):
-            params, opt_state, bad = carry
-            take = lambda d: jax.tree.map(lambda x: x[idx], d)  # noqa: E731
-            (loss, terms), grads = grad_fn(config, params, {"full": pre, "minibatch": take(pre)}, take(post))
-            finite = all_finite((loss, grads))
-            updates, new_opt = optimizer.update(grads, opt_state, params)
-            params, opt_state = keep_if_finite(finite, (optax.apply_updates(params, updates), new_opt),
-                                               (params, opt_state))
-            return (params, opt_state, bad | ~finite), jnp.stack(terms)
-
-        (params, opt_state, bad), terms = jax.lax.scan(step, (params, opt_state, jnp.array(False)), indices)
-        if pcfg.normalize_observations:
-            obs = jnp.concatenate([pre_traj.obs, post_traj.obs], axis=1)
-            valid = jnp.concatenate([pre_traj.valid, post_traj.valid], axis=1)
-            norm = networks.obs_norm_update(params.policy["obs_norm"], obs, valid)
-            params = params._replace(policy={**params.policy, "obs_norm": norm})
-        return params, opt_state, jnp.mean(terms, axis=0), bad.astype(jnp.float32)
+        take = lambda d, idx: jax.tree.map(lambda x: x[idx], d)  # noqa: E731
+        loss_fn = lambda p, idx: outer_loss(config, p, {"full": pre, "minibatch": take(pre, idx)},  # noqa: E731
+                                            take(post, idx))
+        params, opt_state, terms, bad = ppo.minibatch_steps(pcfg, optimizer, loss_fn, params, opt_state,
+                                                            post["valid"].shape[0], key)
+        obs = jnp.concatenate([pre_traj.obs, post_traj.obs], axis=1)
+        valid = jnp.concatenate([pre_traj.valid, post_traj.valid], axis=1)
+        return (ppo.update_obs_norm(pcfg, params, obs, valid), opt_state), terms, bad
 
     def learn_task(state: MAMLTLState, task) -> tuple[MAMLTLState, TaskMetrics]:
+        def collect(learner, aux, keys, it):  # training's steps 1-3
+            params = learner[0]
+            adapted, pre, pre_traj = adapt_on(config, family, params, params.policy, task, keys[0])
+            post_traj = acting.rollout(family, adapted, task, keys[1], B)
+            return learner, aux, rl_loop.collected(family, (pre, pre_traj, post_traj), post_traj, pre_traj)
+
         rng, k_task = jax.random.split(state.rng)
         opt_state = optimizer.init(state.params) if config.reset_optimizer else state.opt_state
-        report = with_fields(progress_fn, task=state.task_index)
-        metrics0 = ppo.empty_metrics(budget)
-
-        def cond(c):
-            return (~c[4]) & (c[3] < budget)
-
-        def body(c):
-            params, opt_state, key, it, _, metrics = c
-            key, k_pre, k_post, k_upd = jax.random.split(key, 4)
-            adapted, pre, pre_traj = adapt_on(config, family, params, params.policy, task, k_pre)
-            post_traj = acting.rollout(family, adapted, task, k_post, B)
-            success_rate = family.success_rate(post_traj.success, post_traj.valid)
-            mean_return = jnp.mean(jnp.sum(post_traj.reward, axis=0))
-            solved = success_rate >= family.success_threshold
-            if report is not None:
-                report({"phase": progress.ITERATION, "iteration": it + 1, "success_rate": success_rate, "mean_return": mean_return})
-            rollout_finite = all_finite((pre_traj.obs, pre_traj.reward, post_traj.obs, post_traj.reward))
-
-            def skip(_):
-                return params, opt_state, jnp.zeros((4,), jnp.float32), jnp.float32(0.0)
-
-            def learn(_):
-                return update(params, opt_state, pre, pre_traj, post_traj, k_upd)
-
-            new_params, new_opt, terms, bad = jax.lax.cond(solved | ~rollout_finite, skip, learn, None)
-            bad = jnp.maximum(bad, 1.0 - rollout_finite.astype(jnp.float32))
-            row = ppo.IterationMetrics(mean_return, success_rate, terms[0], terms[1], terms[2], terms[3], bad,
-                                       jnp.array(True))
-            metrics = jax.tree.map(lambda m, v: m.at[it].set(v), metrics, row)
-            return new_params, new_opt, key, it + 1, solved, metrics
-
-        init_carry = (state.params, opt_state, k_task, jnp.int32(0), jnp.array(False), metrics0)
-        params, opt_state, _, it, solved, metrics = jax.lax.while_loop(cond, body, init_carry)
-        new = MAMLTLState(params, opt_state, rng, state.task_index + 1)
-        return new, TaskMetrics(it, solved, metrics)
+        out = rl_loop.iterate(collect, update, (state.params, opt_state), k_task, threshold=family.success_threshold,
+                              budget=budget, collect_keys=2,
+                              progress_fn=with_fields(progress_fn, task=state.task_index))
+        params, opt_state = out.state
+        return MAMLTLState(params, opt_state, rng, state.task_index + 1), TaskMetrics(out.iterations, out.solved,
+                                                                                      out.metrics)
 
     def policy_for(state: MAMLTLState, slot, task, rng):  # φ: one inner step from θ on fresh data of ``task``
         return adapt_on(config, family, state.params, state.params.policy, task, rng)[0]
@@ -212,8 +181,7 @@ def make(family: Family, config: MAMLTLConfig = MAMLTLConfig(), progress_fn: Opt
         batch is the data of the next inner step (a step whose result is not finite is skipped)."""
         def one(policy, key):
             adapted, _, traj = adapt_on(config, family, state.params, policy, task, key)
-            out = (jnp.mean(jnp.sum(traj.reward, axis=0)), family.success_rate(traj.success, traj.valid))
-            return keep_if_finite(all_finite(adapted), adapted, policy), out
+            return keep_if_finite(all_finite(adapted), adapted, policy), rl_loop.episode_stats(family, traj)
 
         _, (returns, success) = jax.lax.scan(one, state.params.policy, jax.random.split(rng, iterations))
         return returns, success

@@ -53,10 +53,11 @@ from brax.training import types as brax_types
 from brax.training.agents.sac import losses as sac_losses
 from brax.training.agents.sac import networks as sac_networks
 
-from jcomps import acting, buffers, networks, ppo, progress
+from jcomps import acting, buffers, networks, rl_loop
 from jcomps.envs.base import Family
 from jcomps.methods.base import Method, TaskMetrics
-from jcomps.numerics import all_finite, check_field, check_finite_fields, keep_if_finite
+from jcomps.numerics import (all_finite, check_field, check_finite_fields, keep_if_finite, masked_mean,
+                             masked_weights, optimizer_step)
 from jcomps.progress import ProgressFn, with_fields
 
 
@@ -331,8 +332,8 @@ def critic_objective(config: PEARLConfig, nets: Networks, critic_loss_fn, q_enco
                      rows: dict, mask: jax.Array, contexts: jax.Array, context_mask: jax.Array, key: jax.Array):
     """The critics' and encoder's loss on a meta-batch of M task slots: oyster's Σ_k mean (Q_k(s, a, z) − y)² (brax's
     critic loss, ½ mean over rows and both critics, times 4, over the valid rows) plus ``kl_weight`` · the mean over
-    the slots of KL(q(z|c) ‖ N(0, I)) (``PEARLConfig.kl_weight``: oyster's weight per task). ``rows`` hold [M, n, ...] transitions with ``mask`` f32[M, n]; ``contexts``
-    f32[M, c, width] with ``context_mask``. z is drawn per slot by reparameterisation, so the encoder learns through
+    the slots of KL(q(z|c) ‖ N(0, I)) (``PEARLConfig.kl_weight``: oyster's weight per task). ``rows`` hold
+    [M, n, ...] transitions with ``mask`` f32[M, n]; ``contexts`` f32[M, c, width] with ``context_mask``. z is drawn per slot by reparameterisation, so the encoder learns through
     Q(s, a, z) (brax's target is under stop_gradient) and the KL. Returns (loss, (critic loss, mean KL, z [M, latent]
     with its gradient stopped))."""
     q, encoder = q_encoder
@@ -365,7 +366,7 @@ def actor_objective(config: PEARLConfig, nets: Networks, policy_net, q, alpha, o
     log_prob = dist.log_prob(params, pre)
     q_action = nets.sac.q_network.apply(None, q, obs_z, dist.postprocess(pre))
     per_row = alpha * log_prob - jnp.min(q_action, axis=-1)
-    weight = mask / jnp.maximum(jnp.sum(mask), 1.0)
+    weight = masked_weights(mask)
     loc, raw = jnp.split(params, 2, axis=-1)
     log_scale = jnp.log(jax.nn.softplus(raw) + dist._min_std)
     reg = config.policy_reg * jnp.sum(weight[:, None] * (jnp.square(loc) + jnp.square(log_scale))) / loc.shape[-1]
@@ -378,7 +379,7 @@ actor_grad = jax.value_and_grad(actor_objective, argnums=2, has_aux=True)
 def alpha_objective(log_alpha, log_prob: jax.Array, mask: jax.Array, target_entropy: float):
     """brax's temperature loss α · (−log π − target entropy), as a mean over the valid rows: α falls while the
     policy's entropy is above the target and rises below it."""
-    weight = mask / jnp.maximum(jnp.sum(mask), 1.0)
+    weight = masked_weights(mask)
     return jnp.sum(weight * jnp.exp(log_alpha) * jax.lax.stop_gradient(-log_prob - target_entropy))
 
 
@@ -461,81 +462,54 @@ def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optio
         (_, (q_loss, kl, z)), g_critic = critic_grad(config, nets, critic_loss_fn, (state.q, state.encoder),
                                                      policy_net, state.target_q, alpha, rows, mask, contexts,
                                                      context_mask, k_critic)
-        up, critic_opt = optimizer.update(g_critic, state.critic_opt, (state.q, state.encoder))
-        q, encoder = optax.apply_updates((state.q, state.encoder), up)
+        (q, encoder), critic_opt = optimizer_step(optimizer, g_critic, state.critic_opt, (state.q, state.encoder))
         obs_z = with_latent(rows["obs"], z[:, None, :]).reshape((-1, family.obs_size + config.latent_size))
         flat_mask = mask.reshape(-1)
         (actor_loss, log_prob), g_pi = actor_grad(config, nets, policy_net, q, alpha, obs_z, flat_mask, k_actor)
-        up, policy_opt = optimizer.update(g_pi, state.policy_opt, policy_net)
-        new_policy_net = optax.apply_updates(policy_net, up)
+        new_policy_net, policy_opt = optimizer_step(optimizer, g_pi, state.policy_opt, policy_net)
         if config.auto_alpha:  # on the actor's samples, before its step (brax's order)
             g_alpha = jax.grad(alpha_objective)(state.log_alpha, log_prob, flat_mask, target_entropy)
-            up, alpha_opt = optimizer.update(g_alpha, state.alpha_opt, state.log_alpha)
-            log_alpha = optax.apply_updates(state.log_alpha, up)
+            log_alpha, alpha_opt = optimizer_step(optimizer, g_alpha, state.alpha_opt, state.log_alpha)
         else:
             g_alpha, alpha_opt, log_alpha = jnp.float32(0.0), state.alpha_opt, state.log_alpha
         target_q = polyak(state.target_q, q, config.tau)
         new = state._replace(params=state.params._replace(policy={**state.params.policy, "net": new_policy_net}),
                              q=q, target_q=target_q, encoder=encoder, policy_opt=policy_opt, critic_opt=critic_opt,
                              alpha_opt=alpha_opt, log_alpha=log_alpha)
-        entropy = -jnp.sum(log_prob * flat_mask) / jnp.maximum(jnp.sum(flat_mask), 1.0)
-        terms = jnp.stack([actor_loss, q_loss, entropy, kl])
+        terms = rl_loop.UpdateTerms(actor_loss, q_loss, -masked_mean(log_prob, flat_mask), kl)
         finite = all_finite((terms, g_alpha, g_critic, g_pi))
         return keep_if_finite(finite, new, state), terms, ~finite
 
-    class Carry(NamedTuple):
-        state: PEARLState
-        it: jax.Array
-        solved: jax.Array
-        metrics: ppo.IterationMetrics
+    def update(state: PEARLState, _, key: jax.Array):
+        def step(carry, key):
+            s, bad = carry
+            s, terms, nonfinite = gradient_step(s, key)
+            return (s, bad | nonfinite), terms
+
+        (state, bad), terms = jax.lax.scan(step, (state, jnp.array(False)), jax.random.split(key, num_updates))
+        return state, rl_loop.mean_terms(terms), bad
 
     def learn_task(state: PEARLState, task) -> tuple[PEARLState, TaskMetrics]:
         slot = state.task_index
-        report = with_fields(progress_fn, task=state.task_index)
 
-        def cond(c: Carry):
-            return (~c.solved) & (c.it < budget)
-
-        def body(c: Carry):
-            rng, k_z, k_roll, k_upd = jax.random.split(c.state.rng, 4)
-            s, traj, rollout_finite = collect(c.state._replace(rng=rng), task, slot, k_z, k_roll)
-            success_rate = family.success_rate(traj.success, traj.valid)
-            mean_return = jnp.mean(jnp.sum(traj.reward, axis=0))
-            solved = success_rate >= family.success_threshold
-            if report is not None:
-                report({"phase": progress.ITERATION, "iteration": c.it + 1, "success_rate": success_rate, "mean_return": mean_return})
-
-            def update(s):
-                def step(carry, key):
-                    s, bad = carry
-                    s, terms, nonfinite = gradient_step(s, key)
-                    return (s, bad | nonfinite), terms
-
-                (s, bad), terms = jax.lax.scan(step, (s, jnp.array(False)), jax.random.split(k_upd, num_updates))
-                return s, jnp.mean(terms, axis=0), bad.astype(jnp.float32)
-
-            def skip(s):
-                return s, jnp.zeros((4,), jnp.float32), jnp.float32(0.0)
-
-            s, terms, bad = jax.lax.cond(solved | ~rollout_finite, skip, update, s)
-            bad = jnp.maximum(bad, 1.0 - rollout_finite.astype(jnp.float32))
-            row = ppo.IterationMetrics(mean_return, success_rate, terms[0], terms[1], terms[2], terms[3], bad,
-                                       jnp.array(True))
-            metrics = jax.tree.map(lambda m, v: m.at[c.it].set(v), c.metrics, row)
-            return Carry(s, c.it + 1, solved, metrics)
+        def collect_iteration(state: PEARLState, aux, keys, it):
+            state, traj, finite = collect(state, task, slot, *keys)
+            return state, aux, rl_loop.Collected(None, *rl_loop.episode_stats(family, traj), finite)
 
         if n_initial:  # oyster's num_initial_steps, with z from the prior, before the task's first iteration
             rng, k_z, k_roll = jax.random.split(state.rng, 3)
             initial = acting.rollout(family, {**state.params.policy, "z": prior_z(k_z, n_initial)}, task, k_roll,
                                      n_initial, act=act)
             state = state._replace(replay=buffers.transitions_add(state.replay, slot, initial), rng=rng)
-        out = jax.lax.while_loop(cond, body, Carry(state, jnp.int32(0), jnp.array(False), ppo.empty_metrics(budget)))
+        out = rl_loop.iterate(collect_iteration, update, state, state.rng, threshold=family.success_threshold,
+                              budget=budget, collect_keys=2,
+                              progress_fn=with_fields(progress_fn, task=state.task_index))
         s = out.state
-        rng, k_z = jax.random.split(s.rng)
+        rng, k_z = jax.random.split(out.rng)
         z = draw_z(s.encoder, context_store(s), slot, k_z)
         s = s._replace(params=s.params._replace(policy={**s.params.policy, "z": z}), rng=rng,
                        task_index=state.task_index + 1)
-        return s, TaskMetrics(out.it, out.solved, out.metrics)
+        return s, TaskMetrics(out.iterations, out.solved, out.metrics)
 
     def policy_for(state: PEARLState, slot, task, rng):  # z from the slot's data, not the task's
         return {**state.params.policy, "z": draw_z(state.encoder, context_store(state), slot, rng)}
@@ -551,8 +525,7 @@ def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optio
             z = mu + jnp.sqrt(var) * jax.random.normal(k_z, (config.num_trajectories,) + mu.shape, jnp.float32)
             traj = acting.rollout(family, {**state.params.policy, "z": z}, task, k_roll, config.num_trajectories,
                                   act=act)
-            out = (jnp.mean(jnp.sum(traj.reward, axis=0)), family.success_rate(traj.success, traj.valid))
-            return (buffers.finite_transitions(traj), jnp.array(True)), out
+            return (buffers.finite_transitions(traj), jnp.array(True)), rl_loop.episode_stats(family, traj)
 
         z = lambda *shape: jnp.zeros((batch,) + shape, jnp.float32)  # noqa: E731
         empty = {"obs": z(family.obs_size), "action": z(family.action_size), "reward": z(),

@@ -40,7 +40,7 @@ import optax
 from jcomps import acting, networks, ppo, progress
 from jcomps.envs.base import Family
 from jcomps.methods.base import Method, TaskMetrics
-from jcomps.numerics import all_finite, check_field, check_finite_fields, keep_if_finite
+from jcomps.numerics import check_field, check_finite_fields, guarded_update, masked_mean, masked_weights
 from jcomps.progress import ProgressFn, with_fields
 
 
@@ -148,7 +148,7 @@ def distill_loss(config: PNCConfig, kb_trainable: dict, kb: dict, teacher_mean, 
     student = {**kb, **kb_trainable}
     mean, log_std = networks.policy_dist(student, obs)
     kl = gaussian_kl(jax.lax.stop_gradient(teacher_mean), jax.lax.stop_gradient(teacher_log_std), mean, log_std)
-    kl = jnp.sum(kl * valid) / jnp.maximum(jnp.sum(valid), 1.0)
+    kl = masked_mean(kl, valid)
     return kl + ewc_penalty(config, kb_trainable, anchor, fisher), kl
 
 
@@ -163,7 +163,7 @@ def diagonal_fisher(kb: dict, obs: jax.Array, valid: jax.Array, rng: jax.Array) 
         return jax.grad(lambda t: networks.policy_log_prob({**kb, **t}, o, a))(trainable(kb))
 
     grads = jax.vmap(score)(obs, actions)
-    w = valid / jnp.maximum(jnp.sum(valid), 1.0)
+    w = masked_weights(valid)
     fisher = jax.tree.map(lambda g: jnp.tensordot(w, jnp.square(g), axes=1), grads)
     top = jnp.max(jnp.stack([jnp.max(f) for f in jax.tree.leaves(fisher)]))
     return jax.tree.map(lambda f: f / jnp.maximum(top, 1e-12), fisher)
@@ -258,15 +258,13 @@ def compress(config: PNCConfig, family: Family, kb: dict, active: dict, task, fi
         def step(carry, idx):
             theta, opt_state, bad = carry
             (loss, kl), g = grad_fn(config, theta, kb, t_mean[idx], t_log_std, obs[idx], valid[idx], anchor, fisher)
-            up, new_opt = optimizer.update(g, opt_state, theta)
-            finite = all_finite((loss, g))
-            theta, opt_state = keep_if_finite(finite, (optax.apply_updates(theta, up), new_opt), (theta, opt_state))
+            theta, opt_state, finite = guarded_update(optimizer, g, opt_state, theta, loss)
             return (theta, opt_state, bad | ~finite), kl
 
         (theta, opt_state, bad), kls = jax.lax.scan(step, (theta, opt_state, bad), indices)
         if progress_fn is not None:
-            progress_fn({"phase": progress.COMPRESS_ITERATION, "compress_iteration": it + 1, "compress_iterations": jnp.int32(iterations),
-                         "kl": kls[0]})
+            progress_fn({"phase": progress.COMPRESS_ITERATION, "compress_iteration": it + 1,
+                         "compress_iterations": jnp.int32(iterations), "kl": kls[0]})
         return (theta, opt_state, bad), kls[0]
 
     theta0 = trainable(kb)
