@@ -133,188 +133,6 @@ def _silent(event: dict) -> None:
     del event
 
 
-def run_method(out: str, name: str, run: RunConfig, eval_config: continual.EvalConfig, config, resume: bool,
-               progress_fn: ProgressReceiver = _silent, programs: Optional[Programs] = None,
-               stop_after_chunks: Optional[int] = None) -> Optional[results.RawResults]:
-    """Runs (or resumes) one method's sequence, without a grid; returns its raw results when the sequence is
-    done.
-
-    ``stop_after_chunks`` (tests) returns None after that many chunks of this call, as if killed.
-    """
-    spec, = grids.programs(name, config, ())
-    raws = run_program(out, spec, run, eval_config, resume, progress_fn, programs, stop_after_chunks)
-    return None if raws is None else raws[name]
-
-
-def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: continual.EvalConfig, resume: bool,
-                progress_fn: ProgressReceiver = _silent, programs: Optional[Programs] = None,
-                stop_after_chunks: Optional[int] = None) -> Optional[dict]:
-    """Runs (or resumes) one program (``jcomps.grid.programs``): its grid points × the seeds as one compiled
-    chunk program; returns {entry key: RawResults} when the sequence is done. Events go to ``progress_fn``.
-
-    Members are laid out by ``jcomps.members.layout``. A member uses its seed's keys and (stationary) task order,
-    whatever its grid point. ``programs`` holds the compiled programs (default: a fresh cache).
-    ``stop_after_chunks`` (tests) returns None after that many chunks of this call, as if killed.
-    """
-    family = envs.make(run.family)
-    eval_config = eval_config.resolve(run.family)
-    points = spec.points
-    real = len(points) * run.seeds
-    devices = num_devices(real)
-    member_point, member_seed, hparams_host = layout(spec, run.seeds, run.seed, devices)
-    padded = len(member_seed)
-    programs = Programs() if programs is None else programs
-    program = programs.get(spec.method, run.family, spec.config, eval_config, min(run.chunk_tasks, run.num_tasks),
-                           devices, spec.traced)
-    hparams = program.put(hparams_host)
-    name = points[0].key if len(points) == 1 else f"{spec.label}, {len(points)} grid points"
-
-    orders = {s: envs.sequence_values(family, run.sequence, s, run.num_tasks) for s in sorted(set(member_seed))}
-    values = np.stack([orders[s] for s in member_seed])
-    sequences = jax.tree.map(lambda x: x.reshape((padded, run.num_tasks) + x.shape[1:]),
-                             family.tasks(values.reshape(-1)))
-    sequences = program.put(sequences)
-    heldout_tasks = envs.held_out(family)
-    seed_index = program.put(np.arange(padded, dtype=np.int32))
-    backward_keys = program.put(eval_keys(member_seed, 1))
-    num_chunks = math.ceil(run.num_tasks / program.chunk)
-
-    def compile_part(part: str, *args):
-        """Compiles ``part`` of the program for ``args`` unless done, saying so (``COMPILING``, ``STILL_COMPILING``
-        while it takes, ``COMPILED``)."""
-        if part in program.compiled:
-            return
-        where = {"program": name, "family": run.family, "method": spec.method, "part": part, "what": PART_NAMES[part]}
-        progress_fn({"event": COMPILING, **where})
-        times = program.compile(part, *args, waiting=lambda seconds: progress_fn({"event": STILL_COMPILING, **where,
-                                                                                   "seconds": seconds}))
-        progress_fn({"event": COMPILED, **where, **times._asdict()})
-
-    member_names = [f"{points[p].key} seed {s}" for p, s in zip(member_point, member_seed)]
-    progress_fn({"event": START, "program": name, "family": run.family, "sequence": run.sequence,
-                 "num_tasks": run.num_tasks, "seeds": run.seeds, "grid_points": len(points), "padding": padded - real,
-                 "devices": devices, "budget": methods.collection(spec.config).budget_for(family),
-                 "chunk": program.chunk, "start_task": 0, "members": member_names})
-    init_keys = method_keys(member_seed)
-    states = program.init(init_keys, hparams_host)
-    # The learning program is the one a run waits for: it compiles first, alone.
-    compile_part("learn", states, sequences, np.int32(0), seed_index, hparams)
-    task_shapes = program.compiled["learn"].out_info[1]
-    member = lambda shapes: jax.tree.map(  # noqa: E731
-        lambda x: jax.ShapeDtypeStruct((padded,) + x.shape, x.dtype), shapes)
-    chunk_shapes = continual.chunk_metrics(task_shapes, member(continual.task_evaluation_shapes(eval_config)))
-    num_heldout = jax.tree.leaves(heldout_tasks)[0].shape[0]
-    heldout_shapes = member(continual.heldout_shapes(eval_config, num_heldout, run.num_tasks))
-    # Host copies of every metric of the sequence, filled task by task: [members, num_tasks, ...]; those measured
-    # at the start and after every chunk (held-out adaptation, learnt tasks): [members, num_chunks + 1, ...].
-    per_task = jax.tree.map(lambda x: np.zeros((x.shape[0], run.num_tasks) + x.shape[1:], x.dtype), chunk_shapes)
-    heldout = jax.tree.map(lambda x: np.zeros((x.shape[0], num_chunks + 1) + x.shape[1:], x.dtype), heldout_shapes)
-
-    checkpoints = Checkpoints(os.path.join(out, "checkpoints", spec.directory))
-    next_chunk, seconds = 0, 0.0
-    if resume:
-        warn = lambda message: progress_fn({"event": WARNING, "message": message})  # noqa: E731
-        restored = checkpoints.restore_latest(record(states, per_task, heldout, 0, 0.0), warn)
-        if restored is not None:
-            step, tree = restored
-            states = program.put(unflatten(states, tree["states"]))
-            per_task = unflatten(per_task, tree["per_task"])
-            heldout = unflatten(heldout, tree["heldout"])
-            next_chunk, seconds = int(tree["counters"]["next_chunk"]), float(tree["counters"]["seconds"])
-            progress_fn({"event": RESUMED, "program": name, "step": step,
-                         "tasks_done": min(next_chunk * program.chunk, run.num_tasks), "num_tasks": run.num_tasks})
-
-    # The reported members of each point (padding members are dropped).
-    slices = [(slice(p * run.seeds, (p + 1) * run.seeds),) for p in range(len(points))]
-    after_tasks = np.asarray([min(c * program.chunk, run.num_tasks) for c in range(num_chunks + 1)], np.int64)
-
-    def entry_raws(chunks_done: int, seconds_: float) -> dict:
-        """{entry key: RawResults} of the tasks of the first ``chunks_done`` chunks."""
-        upto, measured = int(after_tasks[chunks_done]), chunks_done + 1
-        raws_ = {}
-        for p, point in enumerate(points):
-            task = jax.tree.map(lambda x: np.asarray(x[slices[p]][:, :upto]), per_task)
-            held = jax.tree.map(lambda x: np.asarray(x[slices[p]][:, :measured]), heldout[0])
-            learnt = jax.tree.map(lambda x: np.asarray(x[slices[p]][:, :measured, :upto]), heldout[1])
-            raws_[point.key] = results.RawResults(task.task, task.backward_returns, task.backward_valid, held,
-                                                  after_tasks[:measured], float(seconds_), int(devices),
-                                                  task.backward_success, task.learnt, learnt)
-        return raws_
-
-    if 0 < next_chunk < num_chunks:  # a run stopped by older code has no partial results yet
-        for key, raw in entry_raws(next_chunk, seconds).items():
-            results.save_partial(out, key, raw)
-
-    start_time = time.time()
-    def compile_heldout(states):
-        """The held-out program, compiled for arguments shaped as ``evaluate`` gives them (a no-op once done)."""
-        compile_part("heldout", states, heldout_tasks, backward_keys, sequences, np.int32(0), backward_keys,
-                     seed_index, hparams)
-
-    def evaluate(states, column: int, learnt: int, keys, after: int):
-        """The evaluations of ``states`` (``learnt``: the tasks to evaluate) into column ``column`` of ``heldout``
-        (``after``: the tasks learnt, for the progress lines)."""
-        compile_heldout(states)
-        progress_fn({"event": EVALUATING, "program": name, "after_tasks": after, "learnt": learnt})
-        began = time.time()
-        out_h = jax.device_get(program.heldout(states, heldout_tasks, program.put(keys), sequences, np.int32(learnt),
-                                               backward_keys, seed_index, hparams))
-        jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), column), np.asarray(src)), heldout, out_h)
-        progress_fn({"event": EVALUATED, "program": name, "after_tasks": after, "seconds": time.time() - began})
-        return out_h
-
-    def receive(metrics: dict):
-        progress_fn({"event": metrics["phase"], "program": name,
-                     **{k: v.item() for k, v in metrics.items() if k != "phase"}})
-
-    seeds = list(range(run.seed, run.seed + run.seeds))
-    chunks_run = 0
-    program.receiver = receive
-    try:
-        for c in range(next_chunk, num_chunks):
-            start = c * program.chunk
-            stop = min(start + program.chunk, run.num_tasks)
-            task_metrics = []
-            for i in range(start, stop):
-                states, learnt_metrics = program.learn(states, sequences, np.int32(i), seed_index, hparams)
-                # Dispatched without waiting: the evaluation programs compile while the task trains.
-                compile_part("evaluate_task", states, sequences, np.int32(i), backward_keys, hparams)
-                evaluation = program.evaluate_task(states, sequences, np.int32(i), backward_keys, hparams)
-                compile_heldout(states)
-                task_metrics.append(continual.chunk_metrics(learnt_metrics, evaluation))
-            metrics = jax.device_get(jax.tree.map(lambda *x: jnp.stack(x, axis=1), *task_metrics))
-            jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), slice(start, stop)), src), per_task, metrics)
-            if c == 0:
-                # The held-out meta-test of the initial policies (0 tasks learnt): the same states and keys as
-                # before training, measured after the first chunk, off the path to the first iteration.
-                evaluate(program.init(init_keys, hparams_host), 0, 0, eval_keys(member_seed, 1000), 0)
-            # The learnt tasks after every chunk, or (learnt_eval=end) after the last one only.
-            learnt = stop if eval_config.learnt_eval == "chunk" or stop == run.num_tasks else 0
-            _, learnt_now = evaluate(states, c + 1, learnt, eval_keys(member_seed, 1001 + c), stop)
-            elapsed = seconds + time.time() - start_time
-            checkpoints.save(c + 1, record(states, per_task, heldout, c + 1, elapsed))
-            if c + 1 < num_chunks:  # what a report of the unfinished run shows (report.py --partial)
-                for key, raw in entry_raws(c + 1, elapsed).items():
-                    results.save_partial(out, key, raw)
-            for p, point in enumerate(points):
-                progress_fn({"event": CHUNK, "program": name, "entry": point.key, "start": start, "stop": stop,
-                             "num_tasks": run.num_tasks, "seeds": seeds,
-                             "metrics": jax.tree.map(lambda x: np.asarray(x)[slices[p]], metrics),
-                             "per_task": jax.tree.map(lambda x: x[slices[p]], per_task),
-                             "learnt_tasks": jax.tree.map(lambda x: np.asarray(x)[slices[p]], learnt_now)})
-            chunks_run += 1
-            if stop_after_chunks is not None and chunks_run >= stop_after_chunks and c + 1 < num_chunks:
-                return None
-    finally:
-        program.receiver = None
-    total = seconds + time.time() - start_time
-    raws = entry_raws(num_chunks, total)
-    for key, raw in raws.items():
-        results.save(out, key, raw)
-    progress_fn({"event": DONE, "program": name, "seconds": total})
-    return raws
-
-
 def run(out: str, run_config: RunConfig, eval_config: continual.EvalConfig, method_configs: dict,
         resume: bool = False, progress_fn: ProgressReceiver = _silent, grid: grids.Grid = (),
         overrides: Optional[dict] = None, programs: Optional[Programs] = None) -> dict:
@@ -334,3 +152,251 @@ def run(out: str, run_config: RunConfig, eval_config: continual.EvalConfig, meth
                 done = run_program(out, spec, run_config, eval_config, resume, progress_fn, programs)
             raws.update(done)
     return raws
+
+
+def run_method(out: str, name: str, run: RunConfig, eval_config: continual.EvalConfig, config, resume: bool,
+               progress_fn: ProgressReceiver = _silent, programs: Optional[Programs] = None,
+               stop_after_chunks: Optional[int] = None) -> Optional[results.RawResults]:
+    """Runs (or resumes) one method's sequence, without a grid; returns its raw results when the sequence is
+    done.
+
+    ``stop_after_chunks`` (tests) returns None after that many chunks of this call, as if killed.
+    """
+    spec, = grids.programs(name, config, ())
+    raws = run_program(out, spec, run, eval_config, resume, progress_fn, programs, stop_after_chunks)
+    return None if raws is None else raws[name]
+
+
+def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: continual.EvalConfig, resume: bool,
+                progress_fn: ProgressReceiver = _silent, programs: Optional[Programs] = None,
+                stop_after_chunks: Optional[int] = None) -> Optional[dict]:
+    """Runs (or resumes) one program (``jcomps.grid.programs``): its grid points × the seeds as one set of
+    compiled programs; returns {entry key: RawResults} when the sequence is done. Events go to ``progress_fn``.
+
+    Members are laid out by ``jcomps.members.layout``. A member uses its seed's keys and (stationary) task order,
+    whatever its grid point. ``programs`` holds the compiled programs (default: a fresh cache).
+    ``stop_after_chunks`` (tests) returns None after that many chunks of this call, as if killed.
+    """
+    job = _ProgramRun(out, spec, run, eval_config, progress_fn, Programs() if programs is None else programs)
+    states = job.open(resume)
+    job.program.receiver = job.receive
+    try:
+        for chunks_run, c in enumerate(range(job.next_chunk, job.num_chunks), 1):
+            states = job.run_chunk(states, c)
+            if stop_after_chunks is not None and chunks_run >= stop_after_chunks and c + 1 < job.num_chunks:
+                return None
+    finally:
+        job.program.receiver = None
+    return job.finish()
+
+
+class _ProgramRun:
+    """One program's run (``run_program``): what stays fixed while it runs (its members, compiled programs, the
+    task sequences and keys on the devices), the host copies of its metrics, its checkpoints and its events.
+
+    ``per_task``: ChunkMetrics [members, num_tasks, ...], filled task by task; ``heldout``: (HeldoutMetrics,
+    Evaluation of the learnt tasks) [members, num_chunks + 1, ...], measured at the start and after every chunk.
+    """
+
+    def __init__(self, out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: continual.EvalConfig,
+                 progress_fn: ProgressReceiver, programs: Programs):
+        self.out, self.spec, self.run, self.progress_fn = out, spec, run, progress_fn
+        self.family = envs.make(run.family)
+        self.eval_config = eval_config.resolve(run.family)
+        self.points = spec.points
+        real = len(self.points) * run.seeds
+        self.devices = num_devices(real)
+        self.member_point, self.member_seed, self.hparams_host = layout(spec, run.seeds, run.seed, self.devices)
+        self.padding = len(self.member_seed) - real
+        self.program = programs.get(spec.method, run.family, spec.config, self.eval_config,
+                                    min(run.chunk_tasks, run.num_tasks), self.devices, spec.traced)
+        self.hparams = self.program.put(self.hparams_host)
+        self.name = self.points[0].key if len(self.points) == 1 else f"{spec.label}, {len(self.points)} grid points"
+        self.sequences = self.program.put(self._sequences())
+        self.heldout_tasks = envs.held_out(self.family)
+        self.seed_index = self.program.put(np.arange(len(self.member_seed), dtype=np.int32))
+        self.backward_keys = self.program.put(eval_keys(self.member_seed, 1))
+        self.init_keys = method_keys(self.member_seed)
+        self.num_chunks = math.ceil(run.num_tasks / self.program.chunk)
+        # The reported members of each point (padding members are dropped), and the tasks learnt at each
+        # measurement of ``heldout``.
+        self.slices = [(slice(p * run.seeds, (p + 1) * run.seeds),) for p in range(len(self.points))]
+        self.after_tasks = np.asarray([min(c * self.program.chunk, run.num_tasks) for c in range(self.num_chunks + 1)],
+                                      np.int64)
+        self.checkpoints = Checkpoints(os.path.join(out, "checkpoints", spec.directory))
+        self.next_chunk, self.seconds, self.started = 0, 0.0, time.time()
+
+    def _sequences(self):
+        """Every member's task sequence, Task [members, num_tasks, ...] on the host."""
+        run, seeds = self.run, self.member_seed
+        orders = {s: envs.sequence_values(self.family, run.sequence, s, run.num_tasks) for s in sorted(set(seeds))}
+        values = np.stack([orders[s] for s in seeds])
+        return jax.tree.map(lambda x: x.reshape((len(seeds), run.num_tasks) + x.shape[1:]),
+                            self.family.tasks(values.reshape(-1)))
+
+    def emit(self, kind: str, **fields):
+        """Hands the event ``kind`` of this program, with ``fields``, to the receiver."""
+        self.progress_fn({"event": kind, "program": self.name, **fields})
+
+    def receive(self, metrics: dict):
+        """The compiled programs' progress (``jcomps.progress``), as events of its phase's kind."""
+        self.emit(metrics["phase"], **{k: v.item() for k, v in metrics.items() if k != "phase"})
+
+    def compile(self, part: str, *args):
+        """Compiles ``part`` of the program for ``args`` unless done, saying so (``COMPILING``, ``STILL_COMPILING``
+        while it takes, ``COMPILED``)."""
+        if part in self.program.compiled:
+            return
+        where = {"family": self.run.family, "method": self.spec.method, "part": part, "what": PART_NAMES[part]}
+        self.emit(COMPILING, **where)
+        times = self.program.compile(part, *args, waiting=lambda seconds: self.emit(STILL_COMPILING, **where,
+                                                                                   seconds=seconds))
+        self.emit(COMPILED, **where, **times._asdict())
+
+    def compile_heldout(self, states):
+        """The held-out program, compiled for arguments shaped as ``evaluate`` gives them (a no-op once done)."""
+        self.compile("heldout", states, self.heldout_tasks, self.backward_keys, self.sequences, np.int32(0),
+                     self.backward_keys, self.seed_index, self.hparams)
+
+    def open(self, resume: bool):
+        """The members' states to continue from: the initial ones (the learning program compiled for them), or
+        with ``resume`` those of the newest readable checkpoint, with the metrics so far and ``next_chunk``."""
+        run = self.run
+        self.emit(START, family=run.family, sequence=run.sequence, num_tasks=run.num_tasks, seeds=run.seeds,
+                  grid_points=len(self.points), padding=self.padding, devices=self.devices,
+                  budget=methods.collection(self.spec.config).budget_for(self.family), chunk=self.program.chunk,
+                  start_task=0, members=[f"{self.points[p].key} seed {s}"
+                                         for p, s in zip(self.member_point, self.member_seed)])
+        states = self.program.init(self.init_keys, self.hparams_host)
+        # The learning program is the one a run waits for: it compiles first, alone.
+        self.compile("learn", states, self.sequences, np.int32(0), self.seed_index, self.hparams)
+        self._allocate_metrics()
+        if resume:
+            states = self._restore(states)
+        if 0 < self.next_chunk < self.num_chunks:  # a run stopped by older code has no partial results yet
+            for key, raw in self.entry_raws(self.next_chunk).items():
+                results.save_partial(self.out, key, raw)
+        self.started = time.time()
+        return states
+
+    def _allocate_metrics(self):
+        """Zeroed host copies of every metric of the sequence (``per_task``, ``heldout``)."""
+        member = lambda shapes: jax.tree.map(  # noqa: E731
+            lambda x: jax.ShapeDtypeStruct((len(self.member_seed),) + x.shape, x.dtype), shapes)
+        task_shapes = self.program.compiled["learn"].out_info[1]
+        chunk_shapes = continual.chunk_metrics(task_shapes,
+                                               member(continual.task_evaluation_shapes(self.eval_config)))
+        num_heldout = jax.tree.leaves(self.heldout_tasks)[0].shape[0]
+        heldout_shapes = member(continual.heldout_shapes(self.eval_config, num_heldout, self.run.num_tasks))
+        self.per_task = jax.tree.map(lambda x: np.zeros((x.shape[0], self.run.num_tasks) + x.shape[1:], x.dtype),
+                                     chunk_shapes)
+        self.heldout = jax.tree.map(lambda x: np.zeros((x.shape[0], self.num_chunks + 1) + x.shape[1:], x.dtype),
+                                    heldout_shapes)
+
+    def _restore(self, states):
+        """The states of the newest readable checkpoint (``states`` when there is none), its metrics restored."""
+        warn = lambda message: self.progress_fn({"event": WARNING, "message": message})  # noqa: E731
+        restored = self.checkpoints.restore_latest(record(states, self.per_task, self.heldout, 0, 0.0), warn)
+        if restored is None:
+            return states
+        step, tree = restored
+        states = self.program.put(unflatten(states, tree["states"]))
+        self.per_task = unflatten(self.per_task, tree["per_task"])
+        self.heldout = unflatten(self.heldout, tree["heldout"])
+        self.next_chunk, self.seconds = int(tree["counters"]["next_chunk"]), float(tree["counters"]["seconds"])
+        self.emit(RESUMED, step=step, tasks_done=min(self.next_chunk * self.program.chunk, self.run.num_tasks),
+                  num_tasks=self.run.num_tasks)
+        return states
+
+    def elapsed(self) -> float:
+        """Seconds the program has run, over every process that ran it."""
+        return self.seconds + time.time() - self.started
+
+    def run_chunk(self, states, c: int):
+        """Learns chunk ``c``, evaluates it, checkpoints and reports it; returns the states after it."""
+        start = c * self.program.chunk
+        stop = min(start + self.program.chunk, self.run.num_tasks)
+        states, metrics = self.learn_chunk(states, start, stop)
+        jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), slice(start, stop)), src), self.per_task, metrics)
+        if c == 0:
+            # The held-out meta-test of the initial policies (0 tasks learnt): the same states and keys as
+            # before training, measured after the first chunk, off the path to the first iteration.
+            initial = self.program.init(self.init_keys, self.hparams_host)
+            self.evaluate(initial, 0, 0, eval_keys(self.member_seed, 1000), 0)
+        # The learnt tasks after every chunk, or (learnt_eval=end) after the last one only.
+        learnt = stop if self.eval_config.learnt_eval == "chunk" or stop == self.run.num_tasks else 0
+        _, learnt_now = self.evaluate(states, c + 1, learnt, eval_keys(self.member_seed, 1001 + c), stop)
+        self.save(states, c + 1)
+        self.report_chunk(start, stop, metrics, learnt_now)
+        return states
+
+    def learn_chunk(self, states, start: int, stop: int):
+        """(states, ChunkMetrics [members, stop - start] on the host) after learning the tasks at positions
+        ``start``..``stop - 1`` in turn, each evaluated right after it is learnt."""
+        task_metrics = []
+        for i in range(start, stop):
+            states, learnt = self.program.learn(states, self.sequences, np.int32(i), self.seed_index, self.hparams)
+            # Dispatched without waiting: the evaluation programs compile while the task trains.
+            self.compile("evaluate_task", states, self.sequences, np.int32(i), self.backward_keys, self.hparams)
+            evaluation = self.program.evaluate_task(states, self.sequences, np.int32(i), self.backward_keys,
+                                                    self.hparams)
+            self.compile_heldout(states)
+            task_metrics.append(continual.chunk_metrics(learnt, evaluation))
+        return states, jax.device_get(jax.tree.map(lambda *x: jnp.stack(x, axis=1), *task_metrics))
+
+    def evaluate(self, states, column: int, learnt: int, keys, after: int):
+        """The evaluations of ``states`` (``learnt``: the tasks to evaluate) into column ``column`` of ``heldout``
+        (``after``: the tasks learnt, for the progress lines); returns them on the host."""
+        self.compile_heldout(states)
+        self.emit(EVALUATING, after_tasks=after, learnt=learnt)
+        began = time.time()
+        out = jax.device_get(self.program.heldout(states, self.heldout_tasks, self.program.put(keys), self.sequences,
+                                                  np.int32(learnt), self.backward_keys, self.seed_index, self.hparams))
+        jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), column), np.asarray(src)), self.heldout, out)
+        self.emit(EVALUATED, after_tasks=after, seconds=time.time() - began)
+        return out
+
+    def save(self, states, chunks_done: int):
+        """Checkpoints the run after ``chunks_done`` chunks, and the partial results of an unfinished one (what
+        ``report.py --partial`` shows)."""
+        elapsed = self.elapsed()
+        self.checkpoints.save(chunks_done, record(states, self.per_task, self.heldout, chunks_done, elapsed))
+        if chunks_done < self.num_chunks:
+            for key, raw in self.entry_raws(chunks_done, elapsed).items():
+                results.save_partial(self.out, key, raw)
+
+    def report_chunk(self, start: int, stop: int, metrics, learnt_now):
+        """The ``CHUNK`` event of every results entry (``metrics``: the chunk's ChunkMetrics, ``learnt_now``: the
+        learnt tasks' Evaluation after it, both [members, ...])."""
+        seeds = list(range(self.run.seed, self.run.seed + self.run.seeds))
+        for p, point in enumerate(self.points):
+            mine = self.slices[p]
+            self.emit(CHUNK, entry=point.key, start=start, stop=stop, num_tasks=self.run.num_tasks, seeds=seeds,
+                      metrics=jax.tree.map(lambda x: np.asarray(x)[mine], metrics),
+                      per_task=jax.tree.map(lambda x: x[mine], self.per_task),
+                      learnt_tasks=jax.tree.map(lambda x: np.asarray(x)[mine], learnt_now))
+
+    def entry_raws(self, chunks_done: int, seconds: Optional[float] = None) -> dict:
+        """{entry key: RawResults} of the tasks of the first ``chunks_done`` chunks (``seconds``: the time they
+        took, default the time recorded so far)."""
+        upto, measured = int(self.after_tasks[chunks_done]), chunks_done + 1
+        seconds = self.seconds if seconds is None else seconds
+        raws = {}
+        for p, point in enumerate(self.points):
+            mine = self.slices[p]
+            task = jax.tree.map(lambda x: np.asarray(x[mine][:, :upto]), self.per_task)
+            held = jax.tree.map(lambda x: np.asarray(x[mine][:, :measured]), self.heldout[0])
+            learnt = jax.tree.map(lambda x: np.asarray(x[mine][:, :measured, :upto]), self.heldout[1])
+            raws[point.key] = results.RawResults(task.task, task.backward_returns, task.backward_valid, held,
+                                                 self.after_tasks[:measured], float(seconds), int(self.devices),
+                                                 task.backward_success, task.learnt, learnt)
+        return raws
+
+    def finish(self) -> dict:
+        """Writes every entry's results once the sequence is done; returns them ({entry key: RawResults})."""
+        total = self.elapsed()
+        raws = self.entry_raws(self.num_chunks, total)
+        for key, raw in raws.items():
+            results.save(self.out, key, raw)
+        self.emit(DONE, seconds=total)
+        return raws
