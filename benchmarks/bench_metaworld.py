@@ -91,7 +91,7 @@ def main():
 
     import jax
 
-    from jcomps import acting, envs, networks, ppo
+    from jcomps import acting, envs, methods, networks, ppo
     from jcomps.envs import metaworld as mw
     from jcomps.envs import metaworld_host as host
 
@@ -99,7 +99,8 @@ def main():
         return networks.action_from_noise(policy, obs, noise)
 
     family = envs.make("metaworld")
-    policy = ppo.init_params(ppo.family_config("metaworld"), family, jax.random.PRNGKey(0)).policy
+    config = methods.default_config("ppo_tl", "metaworld").ppo
+    policy = ppo.init_params(config, family, jax.random.PRNGKey(0)).policy
     steps = args.batch * host.MAX_STEPS
     print(f"backend={jax.default_backend()} cores={host.default_workers()}", flush=True)
     for env in args.envs:

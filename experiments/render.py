@@ -118,7 +118,7 @@ def render(run_dir: str, methods_=None, seed=None, tasks=None, mean=False, episo
     description = report.read_description(run_dir)
     run = description["run"]
     family = envs.make(run["family"])
-    if family.name == "metaworld":
+    if family.host_rollout is not None:
         raise experiment.RunError("render.py draws the MJX families with brax's viewer and Point Goal as a plot; "
                                   "MetaWorld runs on MuJoCo's C library, whose renderer needs OpenGL, and has no "
                                   "replay here yet")
@@ -137,7 +137,7 @@ def render(run_dir: str, methods_=None, seed=None, tasks=None, mean=False, episo
     out_dir = out_dir or os.path.join(run_dir, "render")
     os.makedirs(out_dir, exist_ok=True)
     warn = lambda message: print_fn(f"warning: {message}")  # noqa: E731
-    unit = "m/s" if family.name == "cheetah_vel" else "°"
+    unit = family.value_unit
     episode_fn = jax.jit(_episodes, static_argnums=(0, 1, 5))
     written = []
     for m in chosen:

@@ -164,7 +164,7 @@ def _from_options(args):
     configs = {}
     for name in args.run.methods:
         # The method's registered default on the family is the base (with the family's calibrated PPO settings,
-        # jcomps.ppo.FAMILY_DEFAULTS); the shared options override it, then --set overrides one method alone.
+        # registered in jcomps.envs); the shared options override it, then --set overrides one method alone.
         config = cli.build_config(methods.config_class(name), args, base=methods.default_config(name, args.run.family))
         if hasattr(config, "max_tasks") and args.cfg_max_tasks is None:
             config = dataclasses.replace(config, max_tasks=args.run.num_tasks)  # one slot per task, no more

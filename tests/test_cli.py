@@ -6,7 +6,7 @@ import pathlib
 
 import pytest
 
-from jcomps import cli, experiment, methods, ppo
+from jcomps import cli, envs, experiment, methods, ppo
 from jcomps.methods import ppo_tl
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -33,8 +33,8 @@ def test_options_build_the_config(runner):
     args = runner.parse_args(["--learning-rate", "0.005", "--hidden-sizes", "64", "32", "--budget", "7",
                               "--reset-optimizer", "false", "--out", "/nonexistent/x"])
     config = args.configs["ppo_tl"]
-    assert config == ppo_tl.PPOTLConfig(ppo=ppo.family_config("point_goal", ppo.PPOConfig(
-        learning_rate=0.005, hidden_sizes=(64, 32), budget=7)), reset_optimizer=False)
+    assert config == ppo_tl.PPOTLConfig(ppo=methods.with_family_settings(ppo.PPOConfig(
+        learning_rate=0.005, hidden_sizes=(64, 32), budget=7), "point_goal"), reset_optimizer=False)
 
 
 def test_defaults_are_the_family_defaults(runner):
@@ -48,12 +48,12 @@ def test_defaults_are_the_family_defaults(runner):
 
 
 def test_options_override_the_family_defaults(runner):
-    field, value = next(iter(ppo.FAMILY_DEFAULTS["ant_goal"].items()))
+    field, value = next(iter(envs.settings("ant_goal", "ppo").items()))
     other = not value if isinstance(value, bool) else value * 2
     flag = "--" + field.replace("_", "-")
     args = runner.parse_args(["--family", "ant_goal", flag, str(other).lower(), "--out", "/nonexistent/x"])
     assert getattr(args.configs["ppo_tl"].ppo, field) == other
-    for other_field, default in ppo.FAMILY_DEFAULTS["ant_goal"].items():
+    for other_field, default in envs.settings("ant_goal", "ppo").items():
         if other_field != field:
             assert getattr(args.configs["ppo_tl"].ppo, other_field) == default
 
@@ -111,7 +111,7 @@ def test_the_ablation_ladder_removes_one_feature_per_rung():
     # family's calibrated number of PPO steps.
     assert d["gmps"] == dataclasses.replace(d["gmps_ppo"], ppo=dataclasses.replace(
         comps.ppo, num_updates=1, minibatch_size=0, surrogate="vanilla"))
-    assert comps.ppo.num_updates == ppo.FAMILY_DEFAULTS["ant_goal"]["num_updates"]
+    assert comps.ppo.num_updates == envs.settings("ant_goal", "ppo")["num_updates"]
 
 
 def test_set_changes_one_method_and_is_recorded(runner, tmp_path):

@@ -197,7 +197,7 @@ def _act_without_twin(policy, obs, noise):
 def test_host_rollouts_equal_rollouts_stepped_through_the_family(family):
     """The host rollout (the policy's NumPy twin, two seeds under vmap) takes the steps that stepping through
     ``family.step`` with the JAX policy takes, to float32 rounding; an ``act`` without a twin steps."""
-    config = ppo.family_config("metaworld")
+    config = methods.default_config("ppo_tl", "metaworld").ppo
     policies = jax.vmap(lambda k: ppo.init_params(config, family, k).policy)(jax.random.split(jax.random.PRNGKey(0)))
     task = envs.task_at(family, 2)
     keys = jax.random.split(jax.random.PRNGKey(3))
@@ -235,7 +235,7 @@ def test_every_twin_rolls_out_like_its_jax_act(family):
 
 @pytest.fixture(scope="module")
 def rollout_fn(family):
-    config = ppo.family_config("metaworld")
+    config = methods.default_config("ppo_tl", "metaworld").ppo
     params = ppo.init_params(config, family, jax.random.PRNGKey(0))
     task = envs.task_at(family, 1)
     return jax.jit(lambda rng: acting.rollout(family, params.policy, task, rng, 2))

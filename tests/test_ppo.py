@@ -202,13 +202,13 @@ def test_family_defaults_are_valid_configs():
     from jcomps import methods
 
     for family in envs.FAMILIES:
-        config = ppo.family_config(family)
-        for field, value in ppo.FAMILY_DEFAULTS[family].items():
+        config = methods.with_family_settings(ppo.PPOConfig(), family)
+        for field, value in envs.settings(family, "ppo").items():
             assert getattr(config, field) == value
         for name in (m for m in methods.METHODS if m != "pearl"):  # every PPO-based method's RL step (not gmps's)
             expected = dataclasses.replace(config, **methods.REGISTRY[name].rl_step)
             assert methods.default_config(name, family).ppo == expected, name
-    assert not ppo.family_config("point_goal").normalize_observations
+    assert not methods.default_config("ppo_tl", "point_goal").ppo.normalize_observations
 
 
 def test_method_ppo_starts_every_task_afresh(point):

@@ -87,6 +87,8 @@ class MetaConfig:
     Algorithm 1 read literally: per meta step, task after task (newest last), ``num_outer_steps`` Adam steps on
     that task alone. Both make the same number of per-task gradient evaluations (docs/design.md)."""
 
+    SETTINGS_PART: ClassVar[str] = "meta"
+    """Which of a family's calibrated settings apply to this config (``jcomps.envs.settings``)."""
     TRACED: ClassVar[frozenset] = frozenset({
         "outer_learning_rate", "inner_learning_rate", "value_learning_rate", "value_fit_learning_rate", "discount",
         "rho_bar", "c_bar", "pg_rho_bar", "reward_scale"})
@@ -116,11 +118,6 @@ class MetaConfig:
 OUTER_UPDATES = ("mean", "sequential")
 VALUE_INITS = ("rl_step", "random")
 OPTIMIZER_STATES = ("carry", "reset")
-
-# The paper's per-family meta-step settings (its table of inner learning rates: 0.005 on the MuJoCo families,
-# 0.0025 on MetaWorld), put over ``MetaConfig``'s defaults by ``jcomps.methods.default_config``.
-FAMILY_DEFAULTS: dict[str, dict] = {"metaworld": {"inner_learning_rate": 0.0025}}
-
 
 class TaskBatch(NamedTuple):
     """One task's samples for a meta step: ``off`` from D_j ([T, m, ...] + mask [m]), ``skilled`` from D*_j."""
@@ -235,7 +232,7 @@ def adapt(config: MetaConfig, policy, off: buffers.OffPolicyStore, advantages, l
 
 def bc_loss(policy, obs, action, valid):
     """Behaviour cloning: −mean log π(a|s) over valid samples."""
-    return -masked_mean(networks.policy_log_prob(policy, obs, action), valid)
+    return -masked_mean(networks.GAUSSIAN.log_prob(policy, obs, action), valid)
 
 
 def fit_head(config: MetaConfig, policy, value, slot, off: buffers.OffPolicyStore):
@@ -296,7 +293,7 @@ def head_objective(config: MetaConfig, policy, head, batch: TaskBatch):
     # The value heads see observations normalised like the policy's (statistics are constants).
     values = networks.value_apply(head, networks.normalize_obs(policy, off.traj.obs))
     bootstrap = networks.value_apply(head, networks.normalize_obs(policy, off.traj.last_obs))
-    log_prob, log_prob_vjp = jax.vjp(lambda p: networks.policy_log_prob(p, off.traj.obs, off.traj.action), policy)
+    log_prob, log_prob_vjp = jax.vjp(lambda p: networks.GAUSSIAN.log_prob(p, off.traj.obs, off.traj.action), policy)
     advantages, targets, weights = _vtrace_terms(config, log_prob, values, bootstrap, off)
     adapted = adapt(config, policy, off, advantages, log_prob_vjp)
     bc = bc_loss(adapted, batch.skilled_obs, batch.skilled_action, batch.skilled_valid)

@@ -70,6 +70,8 @@ class PPOConfig:
     budget: Optional[int] = None
     """Iterations per task N; None takes the family's paper value (500 Cheetah, 1000 Ant, 100 Point Goal)."""
 
+    SETTINGS_PART: ClassVar[str] = "ppo"
+    """Which of a family's calibrated settings apply to this config (``jcomps.envs.settings``)."""
     TRACED: ClassVar[frozenset] = frozenset({
         "learning_rate", "init_std", "clip_epsilon", "discount", "gae_lambda", "value_coef", "entropy_coef",
         "max_grad_norm", "reward_scale"})
@@ -102,31 +104,6 @@ class PPOConfig:
 
 
 SURROGATES = ("clipped", "vanilla")
-
-
-
-
-# Each family's calibrated PPO settings (docs/families.md has the calibration tables and commands): the defaults
-# of every PPO-based method on that family (``family_config``, ``jcomps.methods.default_config``).
-# The MuJoCo families share all but the initial std: a reward scale of 0.1 and 256 minibatch steps per iteration
-# (16 passes over the batch: our reading B of the paper's "16 training updates with a batch size of 256") with
-# learning rate 1e-4; with 16 steps the Ants did not reliably reach their thresholds in 1,000 iterations, and
-# Half-Cheetah needed more iterations.
-_MUJOCO_DEFAULTS: dict[str, Any] = {"reward_scale": 0.1, "num_updates": 256, "learning_rate": 1e-4}
-FAMILY_DEFAULTS: dict[str, dict[str, Any]] = {
-    # Observations are already positions of order 1 and the threshold was calibrated without normalisation.
-    "point_goal": {"normalize_observations": False},
-    "cheetah_vel": {**_MUJOCO_DEFAULTS, "init_std": 0.15},
-    "ant_goal": {**_MUJOCO_DEFAULTS, "init_std": 0.1},
-    "ant_dir": {**_MUJOCO_DEFAULTS, "init_std": 0.15},
-    "metaworld": {**_MUJOCO_DEFAULTS},
-}
-
-
-def family_config(family_name: str, base: Optional[PPOConfig] = None) -> PPOConfig:
-    """``base`` (default: ``PPOConfig()``) with family ``family_name``'s calibrated settings put over it."""
-    base = PPOConfig() if base is None else base
-    return dataclasses.replace(base, **FAMILY_DEFAULTS.get(family_name, {}))
 
 
 class RLStepResult(NamedTuple):
@@ -183,14 +160,16 @@ def gae(rewards, values, bootstrap_value, dones, discount: float, lambda_: float
 
 
 
-def ppo_loss(params: networks.ActorCriticParams, batch: dict, config: PPOConfig) -> tuple[jax.Array, UpdateTerms]:
-    """PPO loss (clipped surrogate, or the vanilla policy gradient) on a flat minibatch; returns (loss, its
-    UpdateTerms: policy loss, value loss, entropy, approximate KL)."""
+def ppo_loss(params: networks.ActorCriticParams, batch: dict, config: PPOConfig,
+             policy_fns: networks.PolicyFns = networks.GAUSSIAN) -> tuple[jax.Array, UpdateTerms]:
+    """PPO loss (clipped surrogate, or the vanilla policy gradient) on a flat minibatch, the policy applied by
+    ``policy_fns``; returns (loss, its UpdateTerms: policy loss, value loss, entropy, approximate KL)."""
     mask = batch["valid"]
     adv = batch["advantage"]
     if config.normalize_advantages:
         adv = masked_standardize(adv, mask)
-    log_prob = networks.policy_log_prob(params.policy, batch["obs"], batch["action"])
+    mean, log_std = policy_fns.dist(params.policy, batch["obs"])
+    log_prob = networks.gaussian_log_prob(mean, log_std, batch["action"])
     log_ratio = log_prob - batch["log_prob"]
     ratio = jnp.exp(log_ratio)
     if config.surrogate == "vanilla":
@@ -199,7 +178,7 @@ def ppo_loss(params: networks.ActorCriticParams, batch: dict, config: PPOConfig)
         clipped = jnp.clip(ratio, 1 - config.clip_epsilon, 1 + config.clip_epsilon)
         policy_loss = -masked_mean(jnp.minimum(ratio * adv, clipped * adv), mask)
     value_loss = 0.5 * masked_mean(jnp.square(networks.value_of(params, batch["obs"]) - batch["target"]), mask)
-    entropy = networks.gaussian_entropy(params.policy["log_std"])
+    entropy = networks.gaussian_entropy(log_std)
     approx_kl = masked_mean(ratio - 1.0 - log_ratio, mask)
     loss = policy_loss + config.value_coef * value_loss - config.entropy_coef * entropy
     return loss, UpdateTerms(policy_loss, value_loss, entropy, approx_kl)
@@ -258,14 +237,16 @@ def update_obs_norm(config: PPOConfig, params: networks.ActorCriticParams, obs: 
     return params._replace(policy={**params.policy, "obs_norm": norm})
 
 
-def ppo_update(config: PPOConfig, optimizer, params, opt_state, traj: acting.Trajectory, rng: jax.Array):
-    """``num_updates`` minibatch Adam steps on one iteration's batch (``flat_batch``, ``minibatch_steps``).
+def ppo_update(config: PPOConfig, optimizer, params, opt_state, traj: acting.Trajectory, rng: jax.Array,
+               policy_fns: networks.PolicyFns = networks.GAUSSIAN):
+    """``num_updates`` minibatch Adam steps on one iteration's batch (``flat_batch``, ``minibatch_steps``) of the
+    loss of the policy ``policy_fns`` applies (``ppo_loss``).
 
     A step whose loss or gradient is not finite is skipped. Returns (params, opt_state, the mean UpdateTerms,
     nonfinite bool[]).
     """
     flat = flat_batch(config, params, traj)
-    loss_fn = lambda p, idx: ppo_loss(p, jax.tree.map(lambda x: x[idx], flat), config)  # noqa: E731
+    loss_fn = lambda p, idx: ppo_loss(p, jax.tree.map(lambda x: x[idx], flat), config, policy_fns)  # noqa: E731
     return minibatch_steps(config, optimizer, loss_fn, params, opt_state, flat["valid"].shape[0], rng)
 
 
@@ -275,24 +256,27 @@ ObserveFn = Callable[[Any, acting.Trajectory, jax.Array], Any]
 def rl_step(config: PPOConfig, family: Family, params: networks.ActorCriticParams, opt_state, task,
             rng: jax.Array, observe: Optional[ObserveFn] = None, aux: Any = None,
             progress_fn: Optional[ProgressFn] = None, stop_at_threshold: bool = True,
-            budget: Optional[int] = None, run_at_least: Optional[int] = None) -> RLStepResult:
+            budget: Optional[int] = None, run_at_least: Optional[int] = None,
+            policy_fns: networks.PolicyFns = networks.GAUSSIAN) -> RLStepResult:
     """PPO on ``task`` until the success rate reaches ``family.success_threshold`` or the budget is spent.
 
     ``observe(aux, trajectory, iteration) -> aux``, if given, sees every iteration's batch (the experience
     stores of CoMPS are built this way) and threads ``aux`` through the loop. ``progress_fn``, ``stop_at_threshold``
-    and ``run_at_least`` are ``rl_loop.iterate``'s. ``budget`` overrides the config's. Jittable; ``config`` and
-    ``family`` are static.
+    and ``run_at_least`` are ``rl_loop.iterate``'s. ``budget`` overrides the config's. ``policy_fns`` applies
+    ``params.policy`` (default: the Gaussian MLP policy; Progress & Compress's active column brings its own).
+    Jittable; ``config``, ``family`` and ``policy_fns`` are static.
     """
     budget = config.budget_for(family) if budget is None else budget
     optimizer = make_optimizer(config)
+    actor = acting.actor_of(policy_fns)
 
     def collect(learner, aux, keys, it):
-        traj = acting.rollout(family, learner[0].policy, task, keys[0], config.num_trajectories)
+        traj = acting.rollout(family, learner[0].policy, task, keys[0], config.num_trajectories, actor)
         aux = aux if observe is None else observe(aux, traj, it)
         return learner, aux, rl_loop.collected(family, traj, traj)
 
     def update(learner, traj, key):
-        params, opt_state, terms, bad = ppo_update(config, optimizer, *learner, traj, key)
+        params, opt_state, terms, bad = ppo_update(config, optimizer, *learner, traj, key, policy_fns)
         return (update_obs_norm(config, params, traj.obs, traj.valid), opt_state), terms, bad
 
     out = rl_loop.iterate(collect, update, (params, opt_state), rng, threshold=family.success_threshold,

@@ -22,6 +22,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jcomps.numerics import masked_mean
+
 
 class EnvState(NamedTuple):
     """State of one environment (add leading axes with ``vmap``).
@@ -82,6 +84,7 @@ class Family:
       held_out_values: task parameter values never trained on, for meta-test adaptation.
       value_range: inclusive (low, high) bounds a task parameter value must lie in.
       value_name: what a task parameter value means (for messages and docs).
+      value_unit: the unit of a task parameter value, for plots ("m/s", "°"; "" for a code).
       make_task: maps a float32 array of task parameter values (any shape) to the family's task pytree
         with the same leading shape.
       can_terminate: whether ``step_fn`` can ever set ``done`` (only then does ``step`` pay for freezing
@@ -111,6 +114,7 @@ class Family:
     reset_fn: Callable[[jax.Array, Any], EnvState]
     step_fn: Callable[[EnvState, jax.Array, Any], EnvState]
     can_terminate: bool = False
+    value_unit: str = ""
     system: Any = None
     host_rollout: Any = None
 
@@ -145,7 +149,7 @@ class Family:
         """
         if valid is None or not self.can_terminate:
             return jnp.mean(success)
-        return jnp.sum(success * valid) / jnp.maximum(jnp.sum(valid), 1.0)
+        return masked_mean(success, valid)
 
     def tasks(self, values) -> Any:
         """Validated task pytree for task parameter ``values`` (a 1-D sequence), stacked on axis 0."""

@@ -161,7 +161,8 @@ def _make_cheetah() -> base.Family:
         name="cheetah_vel", obs_size=17, action_size=6, success_threshold=0.45,
         default_budget=500, task_values=tuple(sequences.CHEETAH_VELOCITIES),
         held_out_values=sequences.HELD_OUT_VELOCITIES, value_range=(-3.0, 3.0),
-        value_name="goal velocity in m/s", make_task=lambda v: CheetahVelTask(jnp.asarray(v, jnp.float32)),
+        value_name="goal velocity in m/s", value_unit="m/s",
+        make_task=lambda v: CheetahVelTask(jnp.asarray(v, jnp.float32)),
     )
 
 
@@ -173,7 +174,7 @@ def _make_ant(name: str) -> base.Family:
         success_threshold=0.3 if goal else 0.5, default_budget=1000,
         task_values=tuple(float(a) for a in sequences.ANT_ANGLES_DEG),
         held_out_values=sequences.HELD_OUT_ANGLES_DEG, value_range=(-360.0, 360.0),
-        value_name="goal angle in degrees" if goal else "direction angle in degrees",
+        value_name="goal angle in degrees" if goal else "direction angle in degrees", value_unit="°",
         make_task=(lambda a: AntGoalTask(ANT_GOAL_RADIUS * _unit(a))) if goal else (lambda a: AntDirTask(_unit(a))),
         can_terminate=not goal,
     )

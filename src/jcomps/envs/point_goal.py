@@ -69,7 +69,7 @@ def make() -> base.Family:
         task_values=tuple(float(a) for a in sequences.ANT_ANGLES_DEG),
         held_out_values=sequences.HELD_OUT_ANGLES_DEG,
         value_range=(-360.0, 360.0),
-        value_name="goal angle in degrees",
+        value_name="goal angle in degrees", value_unit="°",
         make_task=make_task,
         reset_fn=reset,
         step_fn=step,

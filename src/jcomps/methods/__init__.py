@@ -29,7 +29,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Callable, NamedTuple, Optional
 
-from jcomps import meta, ppo
+from jcomps import envs, meta, ppo
 from jcomps.envs.base import Family
 from jcomps.methods import base, comps, maml_tl, pearl, pnc, ppo_tl
 from jcomps.methods.base import Method, TaskMetrics, collection
@@ -102,22 +102,25 @@ def config_class(name: str):
     return type(_registered(name).default)
 
 
+def with_family_settings(config, family: Family | str):
+    """``config`` (a config dataclass) with ``family``'s calibrated settings (``jcomps.envs.settings``) put over
+    every part of it, itself included, whose class names a ``SETTINGS_PART`` (``PPOConfig``: ``"ppo"``,
+    ``MetaConfig``: ``"meta"``, ``PEARLConfig``: ``"pearl"``)."""
+    changes = {f.name: with_family_settings(getattr(config, f.name), family) for f in dataclasses.fields(config)
+               if dataclasses.is_dataclass(getattr(config, f.name))}
+    part = getattr(type(config), "SETTINGS_PART", None)
+    if part is not None:
+        changes.update(envs.settings(family, part))
+    return dataclasses.replace(config, **changes)
+
+
 def default_config(name: str, family: Family | str):
-    """Method ``name``'s default config on ``family``: its registered default with the family's calibrated PPO
-    settings (``jcomps.ppo.FAMILY_DEFAULTS``) for the RL step, apart from the fields that define the method's RL
-    step (``Registered.rl_step``), and the family's meta-step settings (``jcomps.meta.FAMILY_DEFAULTS``); PEARL's
-    with oyster's settings for the family (``jcomps.methods.pearl.FAMILY_DEFAULTS``)."""
+    """Method ``name``'s default config on ``family``: its registered default with the family's calibrated settings
+    (``with_family_settings``), apart from the fields that define the method's RL step (``Registered.rl_step``)."""
     entry = _registered(name)
-    family_name = family if isinstance(family, str) else family.name
-    if isinstance(entry.default, pearl.PEARLConfig):
-        return dataclasses.replace(entry.default, **pearl.FAMILY_DEFAULTS.get(family_name, {}))
-    if not hasattr(entry.default, "ppo"):
-        return entry.default
-    rl = dataclasses.replace(ppo.family_config(family_name, entry.default.ppo), **entry.rl_step)
-    config = dataclasses.replace(entry.default, ppo=rl)
-    if isinstance(getattr(config, "meta", None), meta.MetaConfig):
-        config = dataclasses.replace(config, meta=dataclasses.replace(config.meta,
-                                                                      **meta.FAMILY_DEFAULTS.get(family_name, {})))
+    config = with_family_settings(entry.default, family)
+    if entry.rl_step:
+        config = dataclasses.replace(config, ppo=dataclasses.replace(config.ppo, **entry.rl_step))
     return config
 
 
@@ -141,5 +144,5 @@ def env_steps_per_iteration(name: str, family: Family, config=None) -> int:
     return base.env_steps_per_iteration(make(name, family, config))
 
 
-__all__ = ["LADDER", "LADDER_FEATURES", "METHODS", "Method", "collection", "REGISTRY", "Registered", "TaskMetrics", "config_class", "default_config",
-           "env_steps_per_iteration", "make"]
+__all__ = ["LADDER", "LADDER_FEATURES", "METHODS", "Method", "collection", "REGISTRY", "Registered", "TaskMetrics",
+           "config_class", "default_config", "env_steps_per_iteration", "make", "with_family_settings"]

@@ -32,7 +32,6 @@ from typing import Any, ClassVar, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
-import optax
 
 from jcomps import acting, networks, ppo, rl_loop
 from jcomps.envs.base import Family
@@ -94,7 +93,7 @@ def inner_step(config: MAMLTLConfig, policy: dict, pre: dict) -> dict:
     if config.ppo.normalize_advantages:
         adv = masked_standardize(adv, mask)
     adv = jax.lax.stop_gradient(adv)
-    log_prob = lambda p: networks.policy_log_prob(p, pre["obs"], pre["action"])  # noqa: E731
+    log_prob = lambda p: networks.GAUSSIAN.log_prob(p, pre["obs"], pre["action"])  # noqa: E731
     if config.inner_objective == "lvc":
         behaviour = jax.lax.stop_gradient(pre["log_prob"])
         objective = lambda p: masked_mean(jnp.exp(log_prob(p) - behaviour) * adv, mask)  # noqa: E731

@@ -136,6 +136,8 @@ class PEARLConfig:
     max_tasks: int = 40
     """Task slots of the replay buffers: the longest sequence the method can learn."""
 
+    SETTINGS_PART: ClassVar[str] = "pearl"
+    """Which of a family's calibrated settings apply to this config (oyster's, ``jcomps.envs.settings``)."""
     TRACED: ClassVar[frozenset] = frozenset({"learning_rate", "discount", "tau", "reward_scale", "kl_weight",
                                              "alpha", "policy_reg"})
     """Fields that may hold traced scalars (a hyperparameter-grid axis)."""
@@ -192,16 +194,6 @@ class PEARLConfig:
 
 
 CONTEXT_SOURCES = ("prior", "replay")
-
-FAMILY_DEFAULTS: dict[str, dict[str, Any]] = {
-    "point_goal": {"initial_steps": 200},  # oyster's point-robot.json (its other fields are the defaults)
-    "cheetah_vel": {"context_size": 100, "updates_per_step": 0.4, "prior_fraction": 0.4},  # cheetah-vel.json
-    "ant_goal": {"context_size": 256, "updates_per_step": 0.8, "prior_fraction": 0.4, "kl_weight": 10.0},
-    "ant_dir": {"context_size": 256, "updates_per_step": 0.8, "prior_fraction": 0.4, "kl_weight": 0.4},
-}
-"""oyster's per-environment settings (``configs/*.json``) for the families that have a counterpart there, in our
-fields (``kl_weight`` = its ``kl_lambda`` × its ``meta_batch``); MetaWorld takes oyster's defaults."""
-
 
 class PEARLState(NamedTuple):
     """params: ActorCriticParams(policy={'net': the policy network's parameters, 'z': f32[latent] drawn from the
@@ -261,8 +253,12 @@ def make_act(nets: Networks):
         pre = loc + (jax.nn.softplus(scale) + dist._min_std) * dist._var_scale * noise
         return jnp.tanh(pre), dist.log_prob(params, pre)
 
-    act.host_kind = "tanh_gaussian"  # its NumPy twin, for host-simulated families (jcomps.host_acting)
     return act
+
+
+def make_actor(nets: Networks) -> acting.Actor:
+    """PEARL's ``acting.Actor``: the ``ActFn`` of ``make_act`` and its NumPy twin (``host_acting.tanh_gaussian``)."""
+    return acting.Actor(make_act(nets), host_kind="tanh_gaussian")
 
 
 def context_features(config: PEARLConfig, rows: dict) -> jax.Array:
@@ -333,8 +329,9 @@ def critic_objective(config: PEARLConfig, nets: Networks, critic_loss_fn, q_enco
     """The critics' and encoder's loss on a meta-batch of M task slots: oyster's Σ_k mean (Q_k(s, a, z) − y)² (brax's
     critic loss, ½ mean over rows and both critics, times 4, over the valid rows) plus ``kl_weight`` · the mean over
     the slots of KL(q(z|c) ‖ N(0, I)) (``PEARLConfig.kl_weight``: oyster's weight per task). ``rows`` hold
-    [M, n, ...] transitions with ``mask`` f32[M, n]; ``contexts`` f32[M, c, width] with ``context_mask``. z is drawn per slot by reparameterisation, so the encoder learns through
-    Q(s, a, z) (brax's target is under stop_gradient) and the KL. Returns (loss, (critic loss, mean KL, z [M, latent]
+    [M, n, ...] transitions with ``mask`` f32[M, n]; ``contexts`` f32[M, c, width] with ``context_mask``. z is
+    drawn per slot by reparameterisation, so the encoder learns through Q(s, a, z) (brax's target is under
+    stop_gradient) and the KL. Returns (loss, (critic loss, mean KL, z [M, latent]
     with its gradient stopped))."""
     q, encoder = q_encoder
     k_z, k_loss = jax.random.split(key)
@@ -386,7 +383,7 @@ def alpha_objective(log_alpha, log_prob: jax.Array, mask: jax.Array, target_entr
 def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optional[ProgressFn] = None) -> Method:
     """PEARL on ``family``: ``init`` and ``learn_task`` as every method (``jcomps.methods.base``)."""
     nets = make_networks(config, family)
-    act = make_act(nets)
+    actor = make_actor(nets)
     budget = config.budget_for(family)
     num_updates = config.updates_for(family)
     batch = config.num_trajectories * family.max_steps
@@ -436,15 +433,16 @@ def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optio
         if from_prior:  # oyster: prior-z episodes fill the emptied encoder buffer, posterior ones the replay only
             (k_zp, k_ctx), (k_prior, k_post) = jax.random.split(k_z), jax.random.split(k_roll)
             prior = acting.rollout(family, {**state.params.policy, "z": prior_z(k_zp, n_prior)}, task, k_prior,
-                                   n_prior, act=act)
+                                   n_prior, actor=actor)
             contexts = buffers.transitions_add(buffers.transitions_clear(state.contexts, slot), slot, prior)
             z = jax.vmap(lambda k: draw_z(state.encoder, contexts, slot, k))(jax.random.split(k_ctx, n_post))
-            post = acting.rollout(family, {**state.params.policy, "z": z}, task, k_post, n_post, act=act)
+            post = acting.rollout(family, {**state.params.policy, "z": z}, task, k_post, n_post, actor=actor)
             replay = buffers.transitions_add(buffers.transitions_add(state.replay, slot, prior), slot, post)
             finite = all_finite((prior.obs, prior.reward, post.obs, post.reward))
             return state._replace(replay=replay, contexts=contexts), post, finite
         z = draw_z(state.encoder, state.replay, slot, k_z, (config.num_trajectories,))
-        traj = acting.rollout(family, {**state.params.policy, "z": z}, task, k_roll, config.num_trajectories, act=act)
+        traj = acting.rollout(family, {**state.params.policy, "z": z}, task, k_roll, config.num_trajectories,
+                              actor=actor)
         finite = all_finite((traj.obs, traj.reward))
         return state._replace(replay=buffers.transitions_add(state.replay, slot, traj)), traj, finite
 
@@ -499,7 +497,7 @@ def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optio
         if n_initial:  # oyster's num_initial_steps, with z from the prior, before the task's first iteration
             rng, k_z, k_roll = jax.random.split(state.rng, 3)
             initial = acting.rollout(family, {**state.params.policy, "z": prior_z(k_z, n_initial)}, task, k_roll,
-                                     n_initial, act=act)
+                                     n_initial, actor=actor)
             state = state._replace(replay=buffers.transitions_add(state.replay, slot, initial), rng=rng)
         out = rl_loop.iterate(collect_iteration, update, state, state.rng, threshold=family.success_threshold,
                               budget=budget, collect_keys=2,
@@ -524,7 +522,7 @@ def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optio
             mu, var = posterior(config, nets, state.encoder, context_features(config, rows), mask)
             z = mu + jnp.sqrt(var) * jax.random.normal(k_z, (config.num_trajectories,) + mu.shape, jnp.float32)
             traj = acting.rollout(family, {**state.params.policy, "z": z}, task, k_roll, config.num_trajectories,
-                                  act=act)
+                                  actor=actor)
             return (buffers.finite_transitions(traj), jnp.array(True)), rl_loop.episode_stats(family, traj)
 
         z = lambda *shape: jnp.zeros((batch,) + shape, jnp.float32)  # noqa: E731
@@ -534,4 +532,4 @@ def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optio
         return returns, success
 
     return Method("pearl", config, family, init, learn_task, env_steps_before_task=n_initial * family.max_steps,
-                  act=act, policy_for=policy_for, adapt=adapt)
+                  actor=actor, policy_for=policy_for, adapt=adapt)
