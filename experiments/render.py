@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jcomps import checkpoint, cli, continual, envs, experiment, members, methods, report
+from jcomps import checkpoint, continual, envs, experiment, members, methods, report
 from jcomps import grid as grids
 
 
@@ -62,7 +62,7 @@ def _specs(description: dict, family) -> dict:
     grid = grids.from_json(description.get("grid"), classes)
     out = {}
     for m in names:
-        config = cli.config_from_dict(methods.default_config(m, family), description["methods"][m])
+        config = methods.resolve_config(m, family, stored=description["methods"][m])
         out[m] = grids.programs(m, config, grid)
     return out
 
@@ -144,7 +144,7 @@ def render(run_dir: str, methods_=None, seed=None, tasks=None, mean=False, episo
         config = specs[m][0].config
         n_episodes = episodes or methods.collection(config).num_trajectories
         method = methods.make(m, family, config)
-        act = methods.base.act_fn(method)
+        act = method.actor.act
         for spec in specs[m]:
             states, learnt = _policies(run_dir, description, family, spec, warn)
             if learnt == 0:

@@ -110,18 +110,29 @@ def add_config_args(parser: argparse.ArgumentParser, classes) -> None:
                                metavar=name.upper(), help=f"{doc} (default: {shown})".replace("%", "%%"))
 
 
-def _with_options(config, args: argparse.Namespace):
-    """``config`` with the leaf fields given on the command line replaced (every nested occurrence)."""
+def shared_options(args: Optional[argparse.Namespace]) -> dict:
+    """{field: value} of the config options given on the command line (lists made tuples)."""
+    if args is None:
+        return {}
+    return {key[len("cfg_"):]: tuple(value) if isinstance(value, list) else value
+            for key, value in vars(args).items() if key.startswith("cfg_") and value is not None}
+
+
+def with_shared(config, shared: dict):
+    """``config`` with every leaf field named in ``shared`` ({field: value}) set, every nested occurrence."""
     changes = {}
     for f in dataclasses.fields(config):
         current = getattr(config, f.name)
         if dataclasses.is_dataclass(current):
-            changes[f.name] = _with_options(current, args)
-            continue
-        value = getattr(args, f"cfg_{f.name}", None) if args is not None else None
-        if value is not None:
-            changes[f.name] = tuple(value) if isinstance(value, list) else value
+            changes[f.name] = with_shared(current, shared)
+        elif f.name in shared:
+            changes[f.name] = shared[f.name]
     return dataclasses.replace(config, **changes)
+
+
+def _with_options(config, args: Optional[argparse.Namespace]):
+    """``config`` with the leaf fields given on the command line replaced (every nested occurrence)."""
+    return with_shared(config, shared_options(args))
 
 
 def build_config(cls, args: argparse.Namespace, base=None):

@@ -44,7 +44,7 @@ from typing import Optional
 
 import numpy as np
 
-from jcomps import cli, envs, methods, plots, rundir, statistics
+from jcomps import envs, methods, plots, rundir, statistics
 from jcomps import continual_metrics as cm
 from jcomps import results as results_
 from jcomps import grid as grids
@@ -80,7 +80,7 @@ def env_steps(description: dict, family, method: str, values: Optional[dict]) ->
     """Env steps one iteration of ``method`` collects in the run ``description`` on its ``family`` (at grid point
     ``values``), those a solved task costs beyond its counted iterations (``Method.env_steps_per_task``) and those
     every task costs before its first iteration (``Method.env_steps_before_task``)."""
-    config = cli.config_from_dict(methods.default_config(method, family), description["methods"][method])
+    config = methods.resolve_config(method, family, stored=description["methods"][method])
     for field, value in (values or {}).items():
         config = grids.replace_flat(config, field, value)
     built = methods.make(method, family, config)  # once: it holds both figures

@@ -27,9 +27,9 @@ The paper's other continual baselines:
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable, NamedTuple, Optional
+from typing import Any, Callable, Mapping, NamedTuple, Optional
 
-from jcomps import envs, meta, ppo
+from jcomps import cli, envs, meta, ppo
 from jcomps.envs.base import Family
 from jcomps.methods import base, comps, maml_tl, pearl, pnc, ppo_tl
 from jcomps.methods.base import Method, TaskMetrics, collection
@@ -124,6 +124,40 @@ def default_config(name: str, family: Family | str):
     return config
 
 
+def task_slots(config) -> Optional[int]:
+    """The task slots a method config's state holds (its ``max_tasks``: CoMPS's experience stores, PEARL's replay
+    buffers), None for a method that learns any number of tasks. The one place that asks a config for it."""
+    return getattr(config, "max_tasks", None)
+
+
+def resolve_config(name: str, family: Family | str, *, stored: Optional[Mapping] = None,
+                   shared: Optional[Mapping] = None, num_tasks: Optional[int] = None,
+                   overrides: Optional[Mapping] = None):
+    """Method ``name``'s full config on ``family``, from its layers, each over the ones before:
+
+    1. its registered default (``REGISTRY``);
+    2. the family's calibrated settings (``default_config``), apart from the fields of the method's RL step;
+    3. ``stored``: the config a run recorded (``run.json``'s ``methods[name]``, on ``--resume`` and in reports);
+       fields it lacks (an older run) keep the layers below;
+    4. ``shared``: {field: value} of the options every method shares (``--learning-rate``), set wherever the field
+       occurs in the config, nested parts included;
+    5. ``num_tasks``: a config with task slots (``task_slots``) gets one per task, unless layer 3 or 4 gave them;
+    6. ``overrides``: {"part.field": value} of this method alone (``--set``; ``cli.parse_overrides``).
+
+    A hyperparameter grid's points are the last layer (``jcomps.grid.points`` over this config). Every layer is
+    validated by the config classes' checks (ValueError naming the field); ``overrides``' errors name ``--set``.
+    """
+    config = default_config(name, family)
+    if stored:
+        config = cli.config_from_dict(config, stored)
+    if shared:
+        config = cli.with_shared(config, shared)
+    given = set(stored or ()) | set(shared or ())
+    if num_tasks is not None and task_slots(config) is not None and "max_tasks" not in given:
+        config = dataclasses.replace(config, max_tasks=num_tasks)
+    return cli.apply_overrides({name: config}, {name: dict(overrides)} if overrides else {})[name]
+
+
 def make(name: str, family: Family, config=None, progress_fn: Optional[ProgressFn] = None) -> Method:
     """Method ``name`` (one of ``METHODS``) on ``family`` with ``config`` (default: ``default_config(name,
     family)``, the paper's defaults with the family's calibrated PPO settings).
@@ -145,4 +179,5 @@ def env_steps_per_iteration(name: str, family: Family, config=None) -> int:
 
 
 __all__ = ["LADDER", "LADDER_FEATURES", "METHODS", "Method", "collection", "REGISTRY", "Registered", "TaskMetrics",
-           "config_class", "default_config", "env_steps_per_iteration", "make", "with_family_settings"]
+           "config_class", "default_config", "env_steps_per_iteration", "make", "resolve_config", "task_slots",
+           "with_family_settings"]
