@@ -16,7 +16,7 @@ from typing import Any, NamedTuple, Optional
 import jax
 import jax.numpy as jnp
 
-from jcomps import acting, ppo, progress, rl_loop
+from jcomps import acting, envs, ppo, progress, rl_loop
 from jcomps.numerics import check_field, check_finite_fields, concrete_max
 from jcomps.progress import ProgressFn, with_fields
 from jcomps.methods import base
@@ -95,13 +95,6 @@ def run_seeds(method: Method, tasks, rngs: jax.Array, progress_fn: Optional[Prog
     return jax.jit(run)(tasks, rngs, jnp.arange(rngs.shape[0], dtype=jnp.int32))
 
 
-HELDOUT_BUDGET = {"point_goal": 50, None: 0}
-"""``EvalConfig.heldout_budget`` by family (None: every other family). The held-out iterations-to-success is ours
-(the paper's held-out measure is the return after a small fixed budget, the curve of ``heldout_iterations``): on
-Point Goal, where held-out tasks are solved in a few iterations, it is cheap; on the MuJoCo families and MetaWorld
-8–9 held-out tasks × 50 PPO iterations after every chunk cost as much as the training itself, and a held-out task
-is rarely solved within them, so only the curve is measured unless asked (``--heldout-budget 50``)."""
-
 LEARNT_EVAL = ("chunk", "end")
 """When ``learnt_tasks`` runs (``EvalConfig.learnt_eval``): after every chunk, or after the last task only."""
 
@@ -117,8 +110,9 @@ class EvalConfig:
     policy, after every chunk (no learning is kept)."""
     heldout_budget: Optional[int] = None
     """Cap of the held-out iterations-to-success (on tasks never trained on): the same adaptation runs up to this
-    many iterations (at least ``heldout_iterations`` + 1); 0: not measured; none: the family's default
-    (HELDOUT_BUDGET: 50 on point_goal, 0 on the MuJoCo families and MetaWorld)."""
+    many iterations (at least ``heldout_iterations`` + 1); 0: not measured; none: the family's default (its
+    ``"eval"`` settings in ``jcomps.envs``: 50 on point_goal; 0, the default, on the MuJoCo families and
+    MetaWorld)."""
     learnt_eval: str = "chunk"
     """When the policy is evaluated on every task learnt so far (success rate and return: forgetting, average
     performance): chunk (after every chunk of tasks) or end (after the last task only). Each task is also
@@ -139,10 +133,11 @@ class EvalConfig:
                     "an integer >= 0 (0: the method's num_trajectories)")
 
     def resolve(self, family: str) -> "EvalConfig":
-        """This config with the family's defaults filled in (``heldout_budget``): what a run uses and records."""
+        """This config with the family's defaults filled in (``heldout_budget``, from its ``"eval"`` settings in
+        ``jcomps.envs``, else 0): what a run uses and records."""
         if self.heldout_budget is not None:
             return self
-        return dataclasses.replace(self, heldout_budget=HELDOUT_BUDGET.get(family, HELDOUT_BUDGET[None]))
+        return dataclasses.replace(self, heldout_budget=envs.settings(family, "eval").get("heldout_budget", 0))
 
     @property
     def heldout_run(self) -> int:

@@ -89,11 +89,26 @@ LADDER: tuple[tuple[str, str, str], ...] = (
     ("gmps_ppo_is", "comps", "FTML warm start"),
 )
 METHODS = tuple(REGISTRY)
+"""The methods jcomps ships (``names()`` also lists any registered since)."""
+
+
+def register(name: str, default, make_fn: Callable[..., Method], rl_step: Optional[dict] = None) -> None:
+    """Registers method ``name``: ``default`` is its default config (an instance of its frozen config dataclass),
+    ``make_fn(family, config, progress_fn) -> Method`` builds it, ``rl_step`` as ``Registered.rl_step``. The runner,
+    reports and ``--set`` find it by name from then on (docs/extending.md). A name can be registered once."""
+    if name in REGISTRY:
+        raise ValueError(f"method {name!r} is already registered")
+    REGISTRY[name] = Registered(default, make_fn, dict(rl_step or {}))
+
+
+def names() -> tuple[str, ...]:
+    """The registered methods' names, in registration order."""
+    return tuple(REGISTRY)
 
 
 def _registered(name: str) -> Registered:
     if name not in REGISTRY:
-        raise ValueError(f"unknown method {name!r}; allowed: {', '.join(METHODS)}")
+        raise ValueError(f"unknown method {name!r}; allowed: {', '.join(REGISTRY)}")
     return REGISTRY[name]
 
 
@@ -179,5 +194,5 @@ def env_steps_per_iteration(name: str, family: Family, config=None) -> int:
 
 
 __all__ = ["LADDER", "LADDER_FEATURES", "METHODS", "Method", "collection", "REGISTRY", "Registered", "TaskMetrics",
-           "config_class", "default_config", "env_steps_per_iteration", "make", "resolve_config", "task_slots",
-           "with_family_settings"]
+           "config_class", "default_config", "env_steps_per_iteration", "make", "names", "register", "resolve_config",
+           "task_slots", "with_family_settings"]
