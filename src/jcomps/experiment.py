@@ -49,7 +49,7 @@ class RunConfig:
     """What a run learns: the family, the sequence, the methods and the seeds."""
 
     family: str = "point_goal"
-    """Task family (see ``jcomps.envs.FAMILIES``)."""
+    """Task family (one of ``jcomps.envs.names()``)."""
     sequence: str = "non-stationary"
     """``non-stationary`` (the paper's order) or ``stationary`` (the same list shuffled by seed)."""
     methods: tuple[str, ...] = ("comps", "ppo_tl")
@@ -65,12 +65,12 @@ class RunConfig:
 
     def __post_init__(self):
         check_finite_fields(self)
-        check_field(self.family in envs.FAMILIES, "family", self.family, ", ".join(envs.FAMILIES))
+        check_field(self.family in envs.names(), "family", self.family, ", ".join(envs.names()))
         check_field(self.sequence in envs.SEQUENCE_KINDS, "sequence", self.sequence, ", ".join(envs.SEQUENCE_KINDS))
         check_field(len(self.methods) >= 1 and len(set(self.methods)) == len(self.methods), "methods", self.methods,
                     "one or more distinct method names")
         for name in self.methods:
-            check_field(name in methods.METHODS, "methods", name, ", ".join(methods.METHODS))
+            check_field(name in methods.names(), "methods", name, ", ".join(methods.names()))
         check_field(self.seeds >= 1, "seeds", self.seeds, "an integer >= 1")
         check_field(self.seed >= 0, "seed", self.seed, "an integer >= 0")
         check_field(self.num_tasks >= 1, "num_tasks", self.num_tasks, "an integer >= 1")
