@@ -1,0 +1,82 @@
+"""docs/extending.md, run: its family and its method are registered from the page's own code and run through the
+runner, so the page cannot drift from the code."""
+
+import pathlib
+import re
+import sys
+import types
+
+import jax
+import numpy as np
+import pytest
+
+from jcomps import envs, methods, report, results
+
+DOC = pathlib.Path(__file__).resolve().parents[1] / "docs" / "extending.md"
+
+
+def _blocks() -> list[str]:
+    return re.findall(r"```python\n(.*?)```", DOC.read_text(), flags=re.S)
+
+
+@pytest.fixture(scope="module")
+def page():
+    """The namespace of the page's first two code blocks (the family and the method, registered once), run as the
+    body of a module, as a user's file would be."""
+    family_code, method_code, _ = _blocks()
+    module = types.ModuleType("extending_example")
+    sys.modules[module.__name__] = module
+    exec(compile(family_code, f"{DOC}:family", "exec"), module.__dict__)
+    exec(compile(method_code, f"{DOC}:method", "exec"), module.__dict__)
+    return dict(module.__dict__)
+
+
+@pytest.fixture(scope="module")
+def run(page, tmp_path_factory):
+    """The page's third block: both methods on the new family through the runner, then the report."""
+    out = str(tmp_path_factory.mktemp("extending"))
+    namespace = {**page, "OUT": out}
+    exec(compile(_blocks()[2], f"{DOC}:run", "exec"), namespace)
+    report.write(out)
+    return out, namespace["raws"], namespace["configs"]
+
+
+def test_the_page_has_a_family_a_method_and_a_run():
+    assert len(_blocks()) == 3
+
+
+def test_a_registered_family_is_found_and_runs_through_the_runner(page, run):
+    out, raws, configs = run
+    family = envs.make("line_goal")
+    assert "line_goal" in envs.names() and family is envs.make("line_goal")
+    assert envs.sequence_values("line_goal", num_tasks=3).tolist() == [1.0, -1.0, 0.5]
+    with pytest.raises(ValueError, match="goal position in m"):
+        family.tasks([5.0])
+    # Its calibrated settings reach every method's default config, and its held-out budget the evaluations.
+    assert methods.default_config("ppo_tl", "line_goal").ppo.normalize_observations is False
+    assert configs["ppo_tl"].ppo.budget == 10
+    raw = results.load(out, "ppo_tl")
+    assert raw.task.iterations.shape == (2, 2)
+    assert np.all((raw.task.iterations >= 1) & (raw.task.iterations <= 10))
+    assert raw.heldout.mean_return.shape[:3] == (2, 2, 2)  # seeds, held-out columns (0 and 2 tasks), tasks
+    assert (pathlib.Path(out) / "results.json").is_file()
+
+
+def test_a_registered_method_runs_through_the_runner_and_starts_each_task_with_a_fresh_critic(page, run):
+    out, raws, configs = run
+    assert "ppo_fresh_critic" in methods.names()
+    raw = raws["ppo_fresh_critic"]
+    assert raw.task.iterations.shape == (2, 2) and np.all(raw.task.iterations >= 1)
+    assert np.isfinite(raw.task.per_iteration.mean_return).all()
+    assert "ppo_fresh_critic" in (pathlib.Path(out) / "significance.md").read_text()
+    # The law of the method: each task starts from the learnt policy and the initial critic.
+    family = envs.make("line_goal")
+    method = methods.make("ppo_fresh_critic", family, configs["ppo_fresh_critic"])
+    state = method.init(jax.random.PRNGKey(0))
+    task = envs.task_at(family, 0)
+    learnt, _ = jax.jit(method.learn_task)(state, task)
+    assert jax.tree.leaves(learnt.params.value)[0].shape == jax.tree.leaves(state.fresh.value)[0].shape
+    changed = [not np.array_equal(a, b) for a, b in zip(jax.tree.leaves(learnt.params.value),
+                                                          jax.tree.leaves(state.fresh.value))]
+    assert any(changed)  # the critic trained on the task ...
+    np.testing.assert_array_equal(jax.tree.leaves(learnt.fresh.value)[0], jax.tree.leaves(state.fresh.value)[0])
