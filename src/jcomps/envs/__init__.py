@@ -24,6 +24,7 @@ import jax
 import numpy as np
 
 from jcomps.envs.base import EnvState, Family, strong, validate_values
+from jcomps.registry import Registry
 
 SEQUENCE_KINDS = ("stationary", "non-stationary")
 
@@ -38,38 +39,30 @@ class Registered(NamedTuple):
     settings: Settings
 
 
-_REGISTRY: dict[str, Registered] = {}
+_REGISTRY: Registry[Registered] = Registry("family")
 
 
 def register(name: str, make_fn: Callable[[], Family], settings: Optional[Settings] = None) -> None:
     """Registers family ``name``: ``make_fn()`` builds it (its ``name`` must be ``name``), ``settings`` are its
     calibrated config settings by part. A name can be registered once."""
-    if name in _REGISTRY:
-        raise ValueError(f"family {name!r} is already registered")
     frozen = {part: types.MappingProxyType(dict(fields)) for part, fields in (settings or {}).items()}
-    _REGISTRY[name] = Registered(make_fn, types.MappingProxyType(frozen))
+    _REGISTRY.add(name, Registered(make_fn, types.MappingProxyType(frozen)))
 
 
 def names() -> tuple[str, ...]:
     """The registered families' names, in registration order."""
-    return tuple(_REGISTRY)
-
-
-def _registered(name: str) -> Registered:
-    if name not in _REGISTRY:
-        raise ValueError(f"unknown family {name!r}; allowed: {', '.join(_REGISTRY)}")
-    return _REGISTRY[name]
+    return _REGISTRY.names()
 
 
 def settings(family: Family | str, part: str) -> Mapping[str, Any]:
     """Family ``family``'s calibrated settings for config part ``part`` ({} if it has none)."""
-    return _registered(family if isinstance(family, str) else family.name).settings.get(part, {})
+    return _REGISTRY.lookup(family if isinstance(family, str) else family.name).settings.get(part, {})
 
 
 @functools.cache
 def make(name: str) -> Family:
     """The family called ``name`` (one of ``names()``); the same object on every call."""
-    family = _registered(name).make()
+    family = _REGISTRY.lookup(name).make()
     if family.name != name:
         raise ValueError(f"family registered as {name!r} is called {family.name!r}")
     return family

@@ -34,6 +34,7 @@ from jcomps.envs.base import Family
 from jcomps.methods import base, comps, maml_tl, pearl, pnc, ppo_tl
 from jcomps.methods.base import Method, TaskMetrics, collection
 from jcomps.progress import ProgressFn
+from jcomps.registry import Registry
 
 
 class Registered(NamedTuple):
@@ -59,7 +60,8 @@ _META = meta.MetaConfig(normalize_advantages=STANDARDISED_INNER_ADVANTAGES)
 _NO_IS = dataclasses.replace(_META, importance_sampling=False, vtrace_baseline=False)
 _VANILLA_PG = {"num_updates": 1, "minibatch_size": 0, "surrogate": "vanilla"}
 
-REGISTRY: dict[str, Registered] = {
+REGISTRY: Registry[Registered] = Registry("method")
+REGISTRY.update({
     "ppo_tl": Registered(ppo_tl.PPOTLConfig(), ppo_tl.make),
     "ppo": Registered(ppo_tl.PPOTLConfig(), ppo_tl.make_scratch),
     "comps": Registered(comps.CoMPSConfig(meta=_META), comps.make),
@@ -72,7 +74,7 @@ REGISTRY: dict[str, Registered] = {
     "maml_tl": Registered(maml_tl.MAMLTLConfig(), maml_tl.make),
     "pnc": Registered(pnc.PNCConfig(), pnc.make, {"hidden_sizes": pnc.PNCConfig().ppo.hidden_sizes}),
     "pearl": Registered(pearl.PEARLConfig(), pearl.make),
-}
+})
 
 # The paper's ablation ladder (appendix "CoMPS Ablation"): (lower rung, upper rung, the feature the upper adds).
 # Every pair differs in the config fields of its feature and in nothing else (tested).
@@ -96,20 +98,16 @@ def register(name: str, default, make_fn: Callable[..., Method], rl_step: Option
     """Registers method ``name``: ``default`` is its default config (an instance of its frozen config dataclass),
     ``make_fn(family, config, progress_fn) -> Method`` builds it, ``rl_step`` as ``Registered.rl_step``. The runner,
     reports and ``--set`` find it by name from then on (docs/extending.md). A name can be registered once."""
-    if name in REGISTRY:
-        raise ValueError(f"method {name!r} is already registered")
-    REGISTRY[name] = Registered(default, make_fn, dict(rl_step or {}))
+    REGISTRY.add(name, Registered(default, make_fn, dict(rl_step or {})))
 
 
 def names() -> tuple[str, ...]:
     """The registered methods' names, in registration order."""
-    return tuple(REGISTRY)
+    return REGISTRY.names()
 
 
 def _registered(name: str) -> Registered:
-    if name not in REGISTRY:
-        raise ValueError(f"unknown method {name!r}; allowed: {', '.join(REGISTRY)}")
-    return REGISTRY[name]
+    return REGISTRY.lookup(name)
 
 
 def config_class(name: str):
