@@ -58,7 +58,6 @@ if __name__ == "__main__":
     _set_host_devices(sys.argv[1:])
 
 import argparse  # noqa: E402
-import dataclasses  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -130,8 +129,8 @@ def parse_args(argv=None):
         parser.error(f"--num-tasks must be in [1, {available}] for {args.run.family}, got {args.run.num_tasks}")
     for name, config in args.configs.items():
         for point in args.points[name]:
-            max_tasks = getattr(point.config, "max_tasks", args.run.num_tasks)
-            if max_tasks < args.run.num_tasks:
+            max_tasks = methods.task_slots(point.config)
+            if max_tasks is not None and max_tasks < args.run.num_tasks:
                 option = ("--grid max_tasks=" if any(a.field == "max_tasks" for a in args.grid) else "--max-tasks ")
                 parser.error(f"{option}{max_tasks} is smaller than --num-tasks {args.run.num_tasks} ({name} keeps "
                              f"one experience slot per task)")
@@ -161,16 +160,13 @@ def _grid(args):
 def _from_options(args):
     args.run = cli.build_config(experiment.RunConfig, args)
     args.eval = cli.build_config(continual.EvalConfig, args)
-    configs = {}
-    for name in args.run.methods:
-        # The method's registered default on the family is the base (with the family's calibrated PPO settings,
-        # registered in jcomps.envs); the shared options override it, then --set overrides one method alone.
-        config = cli.build_config(methods.config_class(name), args, base=methods.default_config(name, args.run.family))
-        if hasattr(config, "max_tasks") and args.cfg_max_tasks is None:
-            config = dataclasses.replace(config, max_tasks=args.run.num_tasks)  # one slot per task, no more
-        configs[name] = config
-    args.overrides = cli.parse_overrides(args.set_specs, configs)
-    args.configs = cli.apply_overrides(configs, args.overrides)
+    # Each method's config from its layers (methods.resolve_config): its registered default on the family, the
+    # shared options, one task slot per task, then --set for that method alone.
+    defaults = {name: methods.default_config(name, args.run.family) for name in args.run.methods}
+    args.overrides = cli.parse_overrides(args.set_specs, defaults)
+    args.configs = {name: methods.resolve_config(name, args.run.family, shared=cli.shared_options(args),
+                                                 num_tasks=args.run.num_tasks, overrides=args.overrides.get(name))
+                    for name in args.run.methods}
     args.out = args.out or os.path.join("runs", f"{args.run.family}-{time.strftime('%Y%m%d-%H%M%S')}")
 
 
@@ -184,15 +180,15 @@ def _from_stored(args):
     args.stored = stored
     args.run = cli.config_from_dict(experiment.RunConfig(), stored["run"], args)
     args.eval = cli.config_from_dict(continual.EvalConfig(), stored["eval"], args)
-    # Each method starts from its registered default on the family: a field missing from an older run.json keeps
-    # the method's default, not its config class's.
-    configs = {name: cli.config_from_dict(methods.default_config(name, args.run.family),
-                                          stored["methods"].get(name, {}), args) for name in args.run.methods}
-    if args.set_specs:  # given again: applied over the stored configs; open_run_dir refuses any difference
-        args.overrides = cli.parse_overrides(args.set_specs, configs)
-    else:
-        args.overrides = stored.get("overrides", {})
-    args.configs = cli.apply_overrides(configs, args.overrides)
+    # Each method's stored config over its registered default on the family (a field missing from an older run.json
+    # keeps the method's default, not its config class's), the options given again, and --set (given again: over
+    # the stored configs; open_run_dir refuses any difference).
+    defaults = {name: methods.default_config(name, args.run.family) for name in args.run.methods}
+    args.overrides = (cli.parse_overrides(args.set_specs, defaults) if args.set_specs
+                      else stored.get("overrides", {}))
+    args.configs = {name: methods.resolve_config(name, args.run.family, stored=stored["methods"].get(name, {}),
+                                                 shared=cli.shared_options(args), overrides=args.overrides.get(name))
+                    for name in args.run.methods}
 
 
 def main(argv=None):
