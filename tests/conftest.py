@@ -85,10 +85,10 @@ def _kill_and_resume(runner, argv: list, out: pathlib.Path, killed, full: pathli
     """Runs ``argv`` into ``out`` with each method in ``killed`` stopped after its first chunk (its checkpoint 1 is
     all there is), resumes the run with ``--resume``, and asserts that every method's raw results equal those of
     the uninterrupted run in ``full``, array for array (wall time apart)."""
-    from jcomps import experiment, results
+    from jcomps import experiment, results, rundir
 
     args = runner.parse_args(argv + ["--out", str(out)])
-    experiment.open_run_dir(str(out), experiment.describe(args.run, args.eval, args.configs), resume=False)
+    rundir.open_run_dir(str(out), rundir.describe(args.run, args.eval, args.configs), resume=False)
     for name in killed:
         assert experiment.run_method(str(out), name, args.run, args.eval, args.configs[name], resume=False,
                                      programs=runner.PROGRAMS, stop_after_chunks=1) is None

@@ -6,7 +6,7 @@ import pathlib
 
 import pytest
 
-from jcomps import cli, envs, experiment, methods, ppo
+from jcomps import cli, envs, methods, ppo, rundir
 from jcomps.methods import ppo_tl
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -88,7 +88,7 @@ def test_runner_config_is_the_registered_default_fresh_and_on_resume(runner, nam
         assert args.configs[method] == _registered_default(method), method
     # On --resume, from the run.json the runner wrote, and from an older run.json whose method entries lack fields
     # (they keep the method's registered default, not its config class's).
-    description = experiment.describe(args.run, args.eval, args.configs)
+    description = rundir.describe(args.run, args.eval, args.configs)
     for stored in (description, {**description, "methods": {m: {"max_tasks": 6} if hasattr(args.configs[m], "max_tasks")
                                                               else {} for m in args.run.methods}}):
         (tmp_path / "run.json").write_text(json.dumps(stored))
@@ -122,7 +122,7 @@ def test_set_changes_one_method_and_is_recorded(runner, tmp_path):
     assert args.configs["gmps_ppo_is"].meta.inner_learning_rate == 0.01  # --set wins for its method
     assert args.configs["gmps_ppo_is"].ppo.hidden_sizes == (64, 32)
     assert args.configs["comps"].ppo.hidden_sizes == ppo.PPOConfig().hidden_sizes
-    description = experiment.describe(args.run, args.eval, args.configs, overrides=args.overrides)
+    description = rundir.describe(args.run, args.eval, args.configs, overrides=args.overrides)
     assert description["overrides"] == {"gmps_ppo_is": {"meta.inner_learning_rate": 0.01,
                                                         "ppo.hidden_sizes": [64, 32]}}
     (tmp_path / "run.json").write_text(json.dumps(description))
@@ -133,7 +133,7 @@ def test_set_changes_one_method_and_is_recorded(runner, tmp_path):
 def test_a_different_set_on_resume_is_refused(runner, tmp_path, capsys):
     args = runner.parse_args(["--methods", "comps", "--set", "comps.meta.inner_learning_rate=0.01",
                               "--out", str(tmp_path)])
-    experiment.open_run_dir(str(tmp_path), experiment.describe(args.run, args.eval, args.configs,
+    rundir.open_run_dir(str(tmp_path), rundir.describe(args.run, args.eval, args.configs,
                                                                overrides=args.overrides), resume=False)
     with pytest.raises(SystemExit) as exit_:
         runner.main(["--out", str(tmp_path), "--resume", "--set", "comps.meta.inner_learning_rate=0.02"])

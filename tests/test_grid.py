@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jcomps import continual, envs, experiment, grid, methods
+from jcomps import continual, envs, experiment, grid, methods, programs, rundir
 from jcomps.methods import comps, ppo_tl
 
 TINY = ["--budget", "3", "--num-trajectories", "2", "--num-updates", "1", "--minibatch-size", "16",
@@ -129,7 +129,7 @@ def test_every_traced_field_traces(name):
     only, not compiled)."""
     config = methods.config_class(name)(**({"max_tasks": 2} if name in ("comps", "pearl") else {}))
     traced = tuple(sorted(grid.traced_fields(type(config))))
-    program = experiment.Programs().get(name, "point_goal", config, continual.EvalConfig(), 1, 1, traced)
+    program = programs.Programs().get(name, "point_goal", config, continual.EvalConfig(), 1, 1, traced)
     abstract = lambda tree: jax.tree.map(  # noqa: E731
         lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=program.sharding), tree)
     values = {f: jnp.full((1,), 0.5, jnp.float32) for f in traced}
@@ -227,7 +227,7 @@ def test_grid_program_traced_once(runner, grid_run):
 def test_killed_and_resumed_grid_run_equals_the_uninterrupted_one(runner, grid_run, tmp_path):
     out = tmp_path / "killed"
     args = runner.parse_args(TINY + RUN + GRID + ["--out", str(out)])
-    experiment.open_run_dir(str(out), experiment.describe(args.run, args.eval, args.configs, args.grid), resume=False)
+    rundir.open_run_dir(str(out), rundir.describe(args.run, args.eval, args.configs, args.grid), resume=False)
     first = grid.programs("ppo_tl", args.configs["ppo_tl"], args.grid)[0]
     assert experiment.run_program(str(out), first, args.run, args.eval, resume=False, programs=runner.PROGRAMS,
                                   stop_after_chunks=1) is None

@@ -8,7 +8,7 @@ import zlib
 import numpy as np
 import pytest
 
-from jcomps import envs, experiment
+from jcomps import envs, experiment, programs, rundir
 
 TINY = ["--family", "cheetah_vel", "--methods", "ppo_tl", "--num-tasks", "3", "--seeds", "2", "--chunk-tasks", "1",
         "--budget", "2", "--num-trajectories", "2", "--hidden-sizes", "8", "--num-updates", "1",
@@ -19,7 +19,7 @@ TINY = ["--family", "cheetah_vel", "--methods", "ppo_tl", "--num-tasks", "3", "-
 # Goal replay test in test_experiment.py runs in CI.
 pytestmark = pytest.mark.slow
 
-PROGRAMS = experiment.Programs()
+PROGRAMS = programs.Programs()
 
 
 @pytest.fixture(scope="module")
@@ -27,7 +27,7 @@ def stopped_run(runner, tmp_path_factory):
     """A tiny Half-Cheetah run stopped after 2 of its 3 tasks (as if killed): its checkpoints, no results."""
     out = tmp_path_factory.mktemp("render") / "stopped"
     args = runner.parse_args(TINY + ["--out", str(out)])
-    experiment.open_run_dir(str(out), experiment.describe(args.run, args.eval, args.configs), False)
+    rundir.open_run_dir(str(out), rundir.describe(args.run, args.eval, args.configs), False)
     experiment.run_method(str(out), "ppo_tl", args.run, args.eval, args.configs["ppo_tl"], False,
                           programs=PROGRAMS, stop_after_chunks=2)
     return out
@@ -86,6 +86,6 @@ def test_render_without_a_checkpoint_or_run(render, tmp_path, runner):
     with pytest.raises(experiment.RunError, match="no run.json"):
         render.render(str(tmp_path))
     args = runner.parse_args(TINY + ["--out", str(tmp_path / "new")])
-    experiment.open_run_dir(str(tmp_path / "new"), experiment.describe(args.run, args.eval, args.configs), False)
+    rundir.open_run_dir(str(tmp_path / "new"), rundir.describe(args.run, args.eval, args.configs), False)
     with pytest.raises(experiment.RunError, match="ppo_tl has no checkpoint yet"):
         render.render(str(tmp_path / "new"))
