@@ -1,4 +1,5 @@
-"""Tests of the experience stores: the true top-K by return, sampling from the last iterations, masks, memory."""
+"""Tests of the experience stores: the true top-K by return, sampling from the last iterations, masks, memory, and
+stores built from an example trajectory (its shapes and dtypes, the sizes given by hand giving the same stores)."""
 
 import chex
 import jax
@@ -6,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 from hypothesis import given, settings, strategies as st
 
-from jcomps import buffers
+from jcomps import acting, buffers, envs, ppo
 from jcomps.acting import Trajectory
 
 T, B, OBS, ACT = 3, 4, 2, 1
@@ -26,7 +27,7 @@ def _batch(returns, tag):
 @given(st.lists(st.lists(st.floats(-100, 100, width=32), min_size=B, max_size=B), min_size=1, max_size=6),
        st.integers(1, 8))
 def test_skilled_store_keeps_the_true_top_k(batches, k):
-    store = buffers.skilled_init(T, k, OBS, ACT)
+    store = buffers.skilled_init_like(_batch(batches[0], 0.0), k)
     update = jax.jit(buffers.skilled_update)
     everything = []
     for i, rets in enumerate(batches):
@@ -45,7 +46,7 @@ def test_skilled_store_keeps_the_true_top_k(batches, k):
 
 def test_offpolicy_samples_only_the_last_iterations():
     capacity = 3
-    ring = buffers.recent_init(capacity, T, B, OBS, ACT)
+    ring = buffers.recent_init_like(_batch(np.zeros(B), 0.0), capacity)
     for i in range(5):  # iterations 0..4; the ring keeps 2, 3, 4
         ring = buffers.recent_add(ring, _batch(np.zeros(B), 100.0 * i))
     off = buffers.sample_offpolicy(ring, 12, jax.random.PRNGKey(0))
@@ -60,7 +61,8 @@ def test_offpolicy_samples_only_the_last_iterations():
 
 
 def test_offpolicy_masks_rows_it_cannot_fill():
-    ring = buffers.recent_add(buffers.recent_init(4, T, B, OBS, ACT), _batch(np.zeros(B), 0.0))  # M = 1
+    ring = buffers.recent_add(buffers.recent_init_like(buffers.trajectory_spec(T, B, OBS, ACT), 4),
+                              _batch(np.zeros(B), 0.0))  # M = 1
     off = buffers.sample_offpolicy(ring, 6, jax.random.PRNGKey(1))
     np.testing.assert_array_equal(np.sort(np.asarray(off.mask)), [0, 0, 1, 1, 1, 1])
     valid_tags = np.asarray(off.traj.obs[0, :, 0])[np.asarray(off.mask) > 0]
@@ -68,9 +70,10 @@ def test_offpolicy_masks_rows_it_cannot_fill():
 
 
 def test_sequence_write_fills_one_slot_and_marks_it():
-    stores = buffers.sequence_init(5, T, 2, 3, OBS, ACT)
-    skilled = buffers.skilled_update(buffers.skilled_init(T, 2, OBS, ACT), _batch([1.0, 5.0, 3.0, 2.0], 7.0))
-    ring = buffers.recent_add(buffers.recent_init(1, T, B, OBS, ACT), _batch(np.zeros(B), 9.0))
+    example = buffers.trajectory_spec(T, B, OBS, ACT)
+    stores = buffers.sequence_init_like(example, 5, 2, 3)
+    skilled = buffers.skilled_update(buffers.skilled_init_like(example, 2), _batch([1.0, 5.0, 3.0, 2.0], 7.0))
+    ring = buffers.recent_add(buffers.recent_init_like(example, 1), _batch(np.zeros(B), 9.0))
     off = buffers.sample_offpolicy(ring, 3, jax.random.PRNGKey(0))
     out = jax.jit(buffers.sequence_write)(stores, jnp.int32(2), skilled, off)
     np.testing.assert_array_equal(out.task_valid, [False, False, True, False, False])
@@ -106,11 +109,11 @@ def test_non_finite_trajectories_stay_out_of_both_stores():
     batch = _batch([1.0, 50.0, 2.0, 40.0], 0.0)
     batch = batch._replace(obs=batch.obs.at[1, 1, 0].set(jnp.nan), last_obs=batch.last_obs.at[3, 1].set(jnp.inf))
     np.testing.assert_array_equal(buffers.finite_trajectories(batch), [True, False, True, False])
-    skilled = buffers.skilled_update(buffers.skilled_init(T, 3, OBS, ACT), batch)
+    skilled = buffers.skilled_update(buffers.skilled_init_like(batch, 3), batch)
     assert sorted(np.asarray(skilled.returns).tolist(), reverse=True)[:2] == [2.0, 1.0]
     assert np.isneginf(np.asarray(skilled.returns)).sum() == 1
     assert all(np.all(np.isfinite(np.asarray(x))) for x in (skilled.obs, skilled.action, skilled.valid))
-    recent = buffers.recent_add(buffers.recent_init(2, T, B, OBS, ACT), batch)
+    recent = buffers.recent_add(buffers.recent_init_like(batch, 2), batch)
     assert all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree.leaves(recent.traj))
     for seed in range(5):
         off = buffers.sample_offpolicy(recent, 4, jax.random.PRNGKey(seed))
@@ -119,3 +122,60 @@ def test_non_finite_trajectories_stay_out_of_both_stores():
         picked = np.asarray(off.traj.obs[0, :, 0])[np.asarray(off.mask) > 0]
         assert sorted(picked.tolist()) == [0.0, 2.0]
         assert all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree.leaves(off.traj))
+
+
+def _shapes(tree):
+    """(shape, dtype) of every leaf of ``tree``, in order, with its structure's text (class names)."""
+    return str(jax.tree.structure(tree)), [(x.shape, jnp.dtype(x.dtype)) for x in jax.tree.leaves(tree)]
+
+
+def test_the_stores_shapes_and_dtypes():
+    # The stores are carried in method states and checkpoints: these shapes and dtypes must not change.
+    n, K, N, C, f32 = 5, 7, 9, 11, jnp.float32
+    step, last = lambda k, *s: [((n, T, k) + s, f32)], lambda k: [((n, k, OBS), f32)]  # noqa: E731
+    per_step = lambda k: step(k, OBS) + step(k, ACT) + 5 * step(k) + last(k)  # noqa: E731
+    assert _shapes(buffers.sequence_init_like(buffers.trajectory_spec(T, B, OBS, ACT), n, K, N))[1] == (
+        step(K, OBS) + step(K, ACT) + step(K) + [((n, K), f32)] + per_step(N) + [((n, N), f32), ((n,), jnp.bool_)])
+    assert _shapes(buffers.recent_init_like(buffers.trajectory_spec(T, B, OBS, ACT), C))[1] == (
+        [((C, T, B, OBS), f32), ((C, T, B, ACT), f32)] + [((C, T, B), f32)] * 5 + [((C, B, OBS), f32)]
+        + [((C, B), jnp.bool_), ((), jnp.int32)])
+    assert _shapes(buffers.transitions_init_like(buffers.trajectory_spec(T, B, OBS, ACT), n, C))[1] == (
+        [((n, C, OBS), f32), ((n, C, ACT), f32), ((n, C), f32), ((n, C, OBS), f32), ((n, C), f32), ((n, C), f32),
+         ((n,), jnp.int32)])
+
+
+def test_stores_from_an_example_are_those_sized_by_hand():
+    example = _batch(np.arange(B), 3.0)  # arrays or their shapes: the same stores
+    for spec in (example, jax.eval_shape(lambda: example), buffers.trajectory_spec(T, B, OBS, ACT)):
+        chex.assert_trees_all_equal(buffers.skilled_init_like(spec, 6), buffers.skilled_init(T, 6, OBS, ACT))
+        chex.assert_trees_all_equal(buffers.recent_init_like(spec, 2), buffers.recent_init(2, T, B, OBS, ACT))
+        chex.assert_trees_all_equal(buffers.sequence_init_like(spec, 3, 4, 5),
+                                    buffers.sequence_init(3, T, 4, 5, OBS, ACT))
+        chex.assert_trees_all_equal(buffers.transitions_init_like(spec, 3, 8),
+                                    buffers.transitions_init(3, 8, OBS, ACT))
+    assert np.all(np.isneginf(buffers.skilled_init_like(example, 6).returns))
+
+
+def test_stores_take_the_examples_dtypes():
+    half = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, jnp.bfloat16), buffers.trajectory_spec(T, B, OBS, ACT))
+    for store in (buffers.skilled_init_like(half, 2), buffers.recent_init_like(half, 2).traj,
+                  buffers.sequence_init_like(half, 2, 2, 2).offpolicy.traj, buffers.transitions_init_like(half, 2, 4)):
+        leaves = [x for x in jax.tree.leaves(store) if jnp.issubdtype(x.dtype, jnp.floating)]
+        assert {x.dtype for x in leaves} == {jnp.dtype(jnp.bfloat16)}
+
+
+def test_rollout_example_has_a_rollouts_shapes():
+    family = envs.make("point_goal")
+    policy = jax.jit(ppo.init_params, static_argnums=(0, 1))(ppo.PPOConfig(), family, jax.random.PRNGKey(0)).policy
+    example = buffers.rollout_example(family, policy, 3)
+    assert all(isinstance(x, jax.ShapeDtypeStruct) for x in jax.tree.leaves(example))
+    task = family.make_task(jnp.float32(family.task_values[-1]))
+    ran = jax.jit(acting.rollout, static_argnums=(0, 4))(family, policy, task, jax.random.PRNGKey(1), 3)
+    assert _shapes(example) == _shapes(ran)
+    traced = jax.jit(lambda p: jnp.zeros(buffers.rollout_example(family, p, 3).obs.shape))(policy)  # a traced policy
+    chex.assert_shape(traced, (family.max_steps, 3, family.obs_size))
+    # The stores a method builds from it are those of the family's sizes given by hand.
+    T_max, O, A = family.max_steps, family.obs_size, family.action_size
+    chex.assert_trees_all_equal(buffers.sequence_init_like(example, 2, 4, 5),
+                                buffers.sequence_init(2, T_max, 4, 5, O, A))
+    chex.assert_trees_all_equal(buffers.recent_init_like(example, 2), buffers.recent_init(2, T_max, 3, O, A))

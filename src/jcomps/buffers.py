@@ -10,6 +10,12 @@ For each task i of a sequence:
 
 ``SequenceStores`` holds both for every task slot of a sequence, with validity masks, so a meta step can cover
 tasks j ≤ i inside ``lax.scan`` without recompiling. Trajectories are time-major: ``[T, K, ...]`` per slot.
+
+Every store is built from an example of the trajectories it will hold (as flashbax's ``init(experience)``): a
+``Trajectory`` of arrays or of ``jax.ShapeDtypeStruct`` (``rollout_example``: ``jax.eval_shape`` of a rollout, which
+traces and never runs), whose shapes and dtypes give T, the batch size, the observation and action sizes; the
+``*_init_like`` functions take it and the capacities only. The sized ``*_init`` functions build the same stores
+from an example of float32 trajectories of the sizes given (``trajectory_spec``).
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from jcomps import acting
 from jcomps.acting import Trajectory
 
 
@@ -72,17 +79,44 @@ def recent_capacity(budget: int, fraction: float = 0.05) -> int:
     return max(1, math.ceil(fraction * budget))
 
 
-def _empty_traj(T, B, obs_size, action_size, lead=()) -> Trajectory:
-    z = lambda *s: jnp.zeros(lead + s, jnp.float32)  # noqa: E731
-    return Trajectory(z(T, B, obs_size), z(T, B, action_size), z(T, B), z(T, B), z(T, B), z(T, B), z(T, B),
-                      z(B, obs_size))
+def trajectory_spec(T: int, B: int, obs_size: int, action_size: int) -> Trajectory:
+    """The shapes of a batch of B float32 trajectories of T steps (``jax.ShapeDtypeStruct`` leaves, as every
+    rollout's): an example to build stores from when there is no rollout to trace."""
+    f = lambda *s: jax.ShapeDtypeStruct(s, jnp.float32)  # noqa: E731
+    return Trajectory(f(T, B, obs_size), f(T, B, action_size), f(T, B), f(T, B), f(T, B), f(T, B), f(T, B),
+                      f(B, obs_size))
+
+
+def rollout_example(family, policy, num_envs: int, *actor) -> Trajectory:
+    """The shapes and dtypes of ``acting.rollout(family, policy, task, key, num_envs, *actor)`` on the family's
+    first task (no shape depends on which), traced by ``jax.eval_shape`` and never run: a Trajectory of
+    ``jax.ShapeDtypeStruct`` ([T, num_envs, ...]), the example a store of such batches is built from. ``actor``:
+    how ``policy`` acts, as ``acting.rollout`` takes it (default: its default). ``policy`` may be traced."""
+    def run(policy, key):
+        task = family.make_task(jnp.float32(family.task_values[0]))
+        return acting.rollout(family, policy, task, key, num_envs, *actor)
+
+    return jax.eval_shape(run, policy, jax.random.PRNGKey(0))
+
+
+def _empty_traj(example: Trajectory, B: int, lead=()) -> Trajectory:
+    """Zeros of ``example``'s dtypes and shapes with its batch axis set to ``B`` ([T, B, ...] per step,
+    last_obs [B, ...]) and ``lead`` axes in front."""
+    z = lambda x, *s: jnp.zeros(lead + s, x.dtype)  # noqa: E731
+    per_step = jax.tree.map(lambda x: z(x, x.shape[0], B, *x.shape[2:]), example._replace(last_obs=None))
+    return per_step._replace(last_obs=z(example.last_obs, B, *example.last_obs.shape[1:]))
+
+
+def skilled_init_like(example: Trajectory, num_skilled: int) -> SkilledStore:
+    """An empty skilled store of ``num_skilled`` trajectories shaped as ``example``'s ([T, B, ...]; any B)."""
+    empty = _empty_traj(example, num_skilled)
+    return SkilledStore(empty.obs, empty.action, empty.valid,
+                        jnp.full((num_skilled,), -jnp.inf, example.reward.dtype))
 
 
 def skilled_init(T: int, num_skilled: int, obs_size: int, action_size: int) -> SkilledStore:
-    """An empty skilled store."""
-    return SkilledStore(jnp.zeros((T, num_skilled, obs_size), jnp.float32),
-                        jnp.zeros((T, num_skilled, action_size), jnp.float32),
-                        jnp.zeros((T, num_skilled), jnp.float32), jnp.full((num_skilled,), -jnp.inf, jnp.float32))
+    """An empty skilled store, sized by hand (``skilled_init_like`` of a float32 ``trajectory_spec``)."""
+    return skilled_init_like(trajectory_spec(T, 1, obs_size, action_size), num_skilled)
 
 
 def finite_trajectories(traj: Trajectory) -> jax.Array:
@@ -117,10 +151,16 @@ def skilled_update(store: SkilledStore, traj: Trajectory) -> SkilledStore:
                         top)
 
 
+def recent_init_like(example: Trajectory, capacity: int) -> RecentStore:
+    """An empty ring of ``capacity`` iterations of batches shaped as ``example`` (one iteration's batch,
+    [T, B, ...])."""
+    B = example.reward.shape[1]
+    return RecentStore(_empty_traj(example, B, (capacity,)), jnp.zeros((capacity, B), bool), jnp.int32(0))
+
+
 def recent_init(capacity: int, T: int, B: int, obs_size: int, action_size: int) -> RecentStore:
-    """An empty ring of ``capacity`` iterations of B trajectories."""
-    return RecentStore(_empty_traj(T, B, obs_size, action_size, (capacity,)), jnp.zeros((capacity, B), bool),
-                       jnp.int32(0))
+    """An empty ring of ``capacity`` iterations of B trajectories, sized by hand (``recent_init_like``)."""
+    return recent_init_like(trajectory_spec(T, B, obs_size, action_size), capacity)
 
 
 def recent_add(store: RecentStore, traj: Trajectory) -> RecentStore:
@@ -161,14 +201,21 @@ def sample_offpolicy(store: RecentStore, num: int, rng: jax.Array) -> OffPolicyS
     return OffPolicyStore(traj, picked)
 
 
-def sequence_init(num_slots: int, T: int, num_skilled: int, num_offpolicy: int, obs_size: int,
-                  action_size: int) -> SequenceStores:
-    """Empty stores for a sequence of ``num_slots`` tasks."""
+def sequence_init_like(example: Trajectory, num_slots: int, num_skilled: int,
+                       num_offpolicy: int) -> SequenceStores:
+    """Empty stores for a sequence of ``num_slots`` tasks: ``num_skilled`` and ``num_offpolicy`` trajectories per
+    slot, shaped as ``example``'s ([T, B, ...]; any B)."""
     skilled = jax.tree.map(lambda x: jnp.broadcast_to(x, (num_slots,) + x.shape),
-                           skilled_init(T, num_skilled, obs_size, action_size))
-    off = OffPolicyStore(_empty_traj(T, num_offpolicy, obs_size, action_size, (num_slots,)),
+                           skilled_init_like(example, num_skilled))
+    off = OffPolicyStore(_empty_traj(example, num_offpolicy, (num_slots,)),
                          jnp.zeros((num_slots, num_offpolicy), jnp.float32))
     return SequenceStores(skilled, off, jnp.zeros((num_slots,), bool))
+
+
+def sequence_init(num_slots: int, T: int, num_skilled: int, num_offpolicy: int, obs_size: int,
+                  action_size: int) -> SequenceStores:
+    """Empty stores for a sequence of ``num_slots`` tasks, sized by hand (``sequence_init_like``)."""
+    return sequence_init_like(trajectory_spec(T, 1, obs_size, action_size), num_slots, num_skilled, num_offpolicy)
 
 
 def sequence_write(stores: SequenceStores, slot: jax.Array, skilled: SkilledStore,
@@ -205,10 +252,17 @@ class TransitionStore(NamedTuple):
     count: jax.Array
 
 
+def transitions_init_like(example: Trajectory, num_slots: int, capacity: int) -> TransitionStore:
+    """Empty replay buffers: ``num_slots`` slots of ``capacity`` transitions of trajectories shaped as
+    ``example``'s ([T, B, ...]; any T and B)."""
+    z = lambda x: jnp.zeros((num_slots, capacity) + x.shape[2:], x.dtype)  # noqa: E731
+    return TransitionStore(z(example.obs), z(example.action), z(example.reward), z(example.obs), z(example.done),
+                           z(example.valid), jnp.zeros((num_slots,), jnp.int32))
+
+
 def transitions_init(num_slots: int, capacity: int, obs_size: int, action_size: int) -> TransitionStore:
-    """Empty replay buffers: ``num_slots`` slots of ``capacity`` transitions."""
-    z = lambda *s: jnp.zeros((num_slots, capacity) + s, jnp.float32)  # noqa: E731
-    return TransitionStore(z(obs_size), z(action_size), z(), z(obs_size), z(), z(), jnp.zeros((num_slots,), jnp.int32))
+    """Empty replay buffers, sized by hand (``transitions_init_like`` of a float32 ``trajectory_spec``)."""
+    return transitions_init_like(trajectory_spec(1, 1, obs_size, action_size), num_slots, capacity)
 
 
 def transitions_of(traj: Trajectory) -> dict:
