@@ -91,12 +91,9 @@ def main():
 
     import jax
 
-    from jcomps import acting, envs, methods, networks, ppo
+    from jcomps import acting, envs, methods, ppo
     from jcomps.envs import metaworld as mw
     from jcomps.envs import metaworld_host as host
-
-    def act_in_jax(policy, obs, noise):  # no NumPy twin: the per-step path
-        return networks.action_from_noise(policy, obs, noise)
 
     family = envs.make("metaworld")
     config = methods.default_config("ppo_tl", "metaworld").ppo
@@ -107,8 +104,9 @@ def main():
         task = family.tasks([mw.code(env, env)])
         task = jax.tree.map(lambda x: x[0], task)
         for path in args.paths:
-            act = networks.action_from_noise if path == "rollout" else act_in_jax
-            rollout = jax.jit(lambda rng, act=act: acting.rollout(family, policy, task, rng, args.batch, act).action)
+            # without its NumPy twin the Gaussian policy takes the per-step path
+            actor = acting.GAUSSIAN if path == "rollout" else acting.Actor(acting.GAUSSIAN.act)
+            rollout = jax.jit(lambda rng, a=actor: acting.rollout(family, policy, task, rng, args.batch, a).action)
             for workers in args.workers:
                 os.environ["JCOMPS_METAWORLD_WORKERS"] = str(workers)
                 mw.pool().close()

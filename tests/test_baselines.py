@@ -21,7 +21,7 @@ def _batch(rng, policy, dtype):
     """A flat batch of N samples whose behaviour log-probabilities sit near π's (ratios well inside the clip)."""
     f = lambda *s: jnp.asarray(rng.normal(size=s), dtype)  # noqa: E731
     obs, action = f(N, OBS), f(N, ACT)
-    log_prob = networks.policy_log_prob(policy, obs, action) + 0.01 * f(N)
+    log_prob = networks.GAUSSIAN.log_prob(policy, obs, action) + 0.01 * f(N)
     return {"obs": obs, "action": action, "log_prob": log_prob, "valid": jnp.ones((N,), dtype),
             "advantage": f(N), "target": f(N)}
 
@@ -67,7 +67,7 @@ def test_maml_lvc_takes_the_same_step_at_the_behaviour_policy_with_more_curvatur
     vpg, params, pre, post = _maml_setup(jnp.float32)
     lvc = dataclasses.replace(vpg, inner_objective="lvc")
     full = pre["full"]  # its behaviour log-probs are π's plus noise of 0.01
-    on_policy = {**full, "log_prob": networks.policy_log_prob(params.policy, full["obs"], full["action"])}
+    on_policy = {**full, "log_prob": networks.GAUSSIAN.log_prob(params.policy, full["obs"], full["action"])}
     step = lambda c, batch: maml_tl.inner_step(c, params.policy, batch)  # noqa: E731
     leaves = jax.tree.leaves
     max_diff = lambda a, b: max(float(jnp.max(jnp.abs(x - y))) for x, y in zip(leaves(a), leaves(b)))  # noqa: E731
@@ -82,7 +82,7 @@ def test_maml_inner_step_is_a_policy_gradient_ascent_step():
     config, params, pre, _ = _maml_setup(jnp.float32)
     full = pre["full"]
     adv = (full["advantage"] - full["advantage"].mean()) / (full["advantage"].std() + 1e-8)
-    objective = lambda p: jnp.mean(networks.policy_log_prob(p, full["obs"], full["action"]) * adv)  # noqa: E731
+    objective = lambda p: jnp.mean(networks.GAUSSIAN.log_prob(p, full["obs"], full["action"]) * adv)  # noqa: E731
     adapted = maml_tl.inner_step(config, params.policy, full)
     g = jax.grad(objective)(params.policy)
     expected = jax.tree.map(lambda p, d: p + config.inner_learning_rate * d, params.policy, g)
@@ -200,14 +200,14 @@ def test_lateral_connections_carry_gradient_into_the_active_column_only():
     family, _, kb, active, _ = _pnc_policies()
     obs = jax.random.normal(jax.random.PRNGKey(2), (7, family.obs_size))
     action = jax.random.normal(jax.random.PRNGKey(3), (7, family.action_size))
-    grads = jax.grad(lambda p: jnp.sum(networks.policy_log_prob(p, obs, action)))(pnc.with_kb(active, kb))
+    grads = jax.grad(lambda p: jnp.sum(pnc.COLUMN.log_prob(p, obs, action)))(pnc.with_kb(active, kb))
     assert all(float(jnp.max(jnp.abs(g))) == 0.0 for g in jax.tree.leaves(grads["kb"]))
     assert all(float(jnp.max(jnp.abs(g))) > 0.0 for g in jax.tree.leaves(grads["adaptors"]))
     assert all(float(jnp.max(jnp.abs(g))) > 0.0 for g in jax.tree.leaves(grads["mean"]))
     # ... while the knowledge base does shape the active column's output through them.
     other_kb = ppo.init_params(TINY_PPO, family, jax.random.PRNGKey(9)).policy
-    a = networks.policy_dist(pnc.with_kb(active, kb), obs)[0]
-    b = networks.policy_dist(pnc.with_kb(active, other_kb), obs)[0]
+    a = pnc.COLUMN.dist(pnc.with_kb(active, kb), obs)[0]
+    b = pnc.COLUMN.dist(pnc.with_kb(active, other_kb), obs)[0]
     assert float(jnp.max(jnp.abs(a - b))) > 1e-4
 
 

@@ -230,7 +230,7 @@ def test_standardised_inner_advantages(vtrace_baseline):
     policy, value = _params()
     batch = jax.tree.map(lambda x: x[0], meta.sample_batches(CONFIG, stores, jax.random.PRNGKey(0)))
     off = batch.off._replace(mask=batch.off.mask.at[0].set(0.0))  # one trajectory masked out
-    log_prob = networks.policy_log_prob(policy, off.traj.obs, off.traj.action)
+    log_prob = networks.GAUSSIAN.log_prob(policy, off.traj.obs, off.traj.action)
     values, bootstrap = jnp.zeros_like(log_prob), jnp.zeros_like(off.traj.last_obs[:, 0])
     mask = off.traj.valid * off.mask[None, :]
     for importance_sampling in (False, True):
@@ -292,7 +292,7 @@ def _constant_reward_stores(reward, policy, seed=11):
     """Stores whose every step pays ``reward``, never terminating, collected by ``policy`` itself (ρ = 1)."""
     stores = _stores(seed)
     traj = stores.offpolicy.traj
-    log_prob = jax.vmap(lambda o, a: networks.policy_log_prob(policy, o, a))(traj.obs, traj.action)
+    log_prob = jax.vmap(lambda o, a: networks.GAUSSIAN.log_prob(policy, o, a))(traj.obs, traj.action)
     traj = traj._replace(reward=np.full_like(traj.reward, reward), log_prob=np.asarray(log_prob))
     return stores._replace(offpolicy=stores.offpolicy._replace(traj=traj))
 

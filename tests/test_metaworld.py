@@ -152,22 +152,22 @@ def _perturbed(tree, seed):
 
 
 def _policies_with_twins():
-    """(name, act, policy) for every act that has a NumPy twin: the Gaussian MLP, Progress & Compress's active
+    """(name, actor, policy) for every actor that has a NumPy twin: the Gaussian MLP, Progress & Compress's active
     column (laterals from a knowledge base) and PEARL's tanh-Gaussian with a per-episode z."""
-    from jcomps.methods import pearl
+    from jcomps.methods import pearl, pnc
 
     plain_policy = _perturbed(networks.init_actor_critic(jax.random.PRNGKey(0), 39, 4, (16, 8), 0.5).policy, 1)
     kb = _perturbed(networks.init_actor_critic(jax.random.PRNGKey(2), 39, 4, (16, 8), 0.5).policy, 3)
     column = {**_perturbed({**networks.init_actor_critic(jax.random.PRNGKey(4), 39, 4, (16, 8), 0.5).policy,
-                            "adaptors": networks.adaptors_init(jax.random.PRNGKey(5), (39, 16, 8, 4))}, 6),
+                            "adaptors": pnc.adaptors_init(jax.random.PRNGKey(5), (39, 16, 8, 4))}, 6),
               "kb": kb}
     config = pearl.PEARLConfig(hidden_sizes=(16, 8))
     fam = envs.make("metaworld")
     nets = pearl.make_networks(config, fam)
     net = _perturbed(nets.sac.policy_network.init(jax.random.PRNGKey(7)), 8)
     z = jax.random.normal(jax.random.PRNGKey(9), (6, config.latent_size))
-    return [("gaussian", networks.action_from_noise, plain_policy), ("column", networks.action_from_noise, column),
-            ("tanh_gaussian", pearl.make_act(nets), {"net": net, "z": z})]
+    return [("gaussian", acting.GAUSSIAN, plain_policy), ("column", acting.actor_of(pnc.COLUMN), column),
+            ("tanh_gaussian", pearl.make_actor(nets), {"net": net, "z": z})]
 
 
 def test_numpy_twins_act_like_the_jax_policies():
@@ -176,36 +176,32 @@ def test_numpy_twins_act_like_the_jax_policies():
                                                                np.float32(networks.OBS_STD_MIN))
     obs = np.asarray(30.0 * jax.random.normal(jax.random.PRNGKey(10), (6, 39)))  # some beyond the clip
     noise = np.asarray(jax.random.normal(jax.random.PRNGKey(11), (6, 4)))
-    for name, act, policy in _policies_with_twins():
-        want_action, want_log_prob = jax.jit(act)(policy, obs, noise)
+    for name, actor, policy in _policies_with_twins():
+        want_action, want_log_prob = jax.jit(actor.act)(policy, obs, noise)
         plain = host_acting.plain(jax.tree.map(np.asarray, policy))
-        action, log_prob = host_acting.act(act.host_kind, plain, obs, noise, np.arange(6))
+        action, log_prob = host_acting.act(actor.host_kind, plain, obs, noise, np.arange(6))
         assert action.dtype == log_prob.dtype == np.float32
         np.testing.assert_allclose(action, want_action, rtol=1e-5, atol=1e-5, err_msg=name)
         np.testing.assert_allclose(log_prob, want_log_prob, rtol=1e-4, atol=1e-4, err_msg=name)  # float32 sums
         # Row by row: an episode's action does not depend on which episodes share its batch.
         rows = np.array([4, 1])
-        part = host_acting.act(act.host_kind, plain, obs[rows], noise[rows], rows)
+        part = host_acting.act(actor.host_kind, plain, obs[rows], noise[rows], rows)
         np.testing.assert_array_equal(part[0], action[rows], err_msg=name)
         np.testing.assert_array_equal(part[1], log_prob[rows], err_msg=name)
 
 
-def _act_without_twin(policy, obs, noise):
-    return networks.action_from_noise(policy, obs, noise)
-
-
 def test_host_rollouts_equal_rollouts_stepped_through_the_family(family):
     """The host rollout (the policy's NumPy twin, two seeds under vmap) takes the steps that stepping through
-    ``family.step`` with the JAX policy takes, to float32 rounding; an ``act`` without a twin steps."""
+    ``family.step`` with the JAX policy takes, to float32 rounding; an actor without a twin steps."""
     config = methods.default_config("ppo_tl", "metaworld").ppo
     policies = jax.vmap(lambda k: ppo.init_params(config, family, k).policy)(jax.random.split(jax.random.PRNGKey(0)))
     task = envs.task_at(family, 2)
     keys = jax.random.split(jax.random.PRNGKey(3))
 
-    def run(act):
-        return jax.jit(jax.vmap(lambda p, k: acting.rollout(family, p, task, k, 2, act)))(policies, keys)
+    def run(actor):
+        return jax.jit(jax.vmap(lambda p, k: acting.rollout(family, p, task, k, 2, actor)))(policies, keys)
 
-    fast, stepped = run(networks.action_from_noise), run(_act_without_twin)
+    fast, stepped = run(acting.GAUSSIAN), run(acting.Actor(acting.GAUSSIAN.act))
     assert fast.obs.shape == stepped.obs.shape == (2, 150, 2, 39)
     for field in ("obs", "action", "log_prob", "reward", "success"):
         np.testing.assert_allclose(getattr(fast, field)[:, :40], getattr(stepped, field)[:, :40], rtol=1e-4,
@@ -216,18 +212,15 @@ def test_host_rollouts_equal_rollouts_stepped_through_the_family(family):
 
 
 def test_every_twin_rolls_out_like_its_jax_act(family):
-    """Each act with a NumPy twin (PEARL's with a per-episode z) takes, in a host rollout, the steps its JAX act
+    """Each actor with a NumPy twin (PEARL's with a per-episode z) takes, in a host rollout, the steps its JAX act
     takes through ``family.step``, to float32 rounding (the first 10 steps)."""
     task = envs.task_at(family, 0)
-    for name, act, policy in _policies_with_twins():
+    for name, actor, policy in _policies_with_twins():
         if "z" in policy:
             policy = {**policy, "z": policy["z"][:2]}
 
-        def act_without_twin(p, o, n, act=act):
-            return act(p, o, n)
-
         fast, stepped = (jax.jit(lambda k, a=a: acting.rollout(family, policy, task, k, 2, a))(jax.random.PRNGKey(1))
-                         for a in (act, act_without_twin))
+                         for a in (actor, acting.Actor(actor.act)))
         for field in ("obs", "action", "log_prob", "reward"):
             np.testing.assert_allclose(getattr(fast, field)[:10], getattr(stepped, field)[:10], rtol=1e-3,
                                        atol=1e-3, err_msg=f"{name}: {field}")

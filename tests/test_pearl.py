@@ -120,7 +120,7 @@ def test_buffers_keep_every_task_and_never_mix_slots(tiny, family):
     # ring overwrites its oldest batch
     store = buffers.transitions_init(2, 2 * batch, family.obs_size, family.action_size)
     traj = acting.rollout(family, s0.params.policy, envs.task_at(family, 0), jax.random.PRNGKey(3),
-                          TINY.num_trajectories, act=method.act)
+                          TINY.num_trajectories, actor=method.actor)
     marked = lambda v: traj._replace(obs=jnp.full_like(traj.obs, v), last_obs=jnp.full_like(traj.last_obs, v))  # noqa
     store = buffers.transitions_add(store, 0, traj)
     before = jax.tree.map(lambda x: x[0], store)

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jcomps import acting, envs, networks, ppo
+from jcomps import acting, envs, host_acting, networks, ppo
 from jcomps.methods import pnc
 
 TINY_PPO = ppo.PPOConfig(num_trajectories=2, num_updates=1, minibatch_size=16, hidden_sizes=(8, 8), budget=2)
@@ -83,6 +83,24 @@ def test_renormalising_keeps_the_kbs_function_on_the_old_states():
     for a, b in zip(jax.tree.leaves(fresh["mean"]), jax.tree.leaves(fresh2["mean"])):
         np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(fisher3["mean"][0]["w"], fisher["mean"][0]["w"])
+
+
+def test_a_column_without_laterals_is_its_own_mlp_policy():
+    """With every adaptor's scale α at 0 the active column (``COLUMN``) acts as the plain Gaussian policy of its own
+    layers, whatever its knowledge base; with α > 0 the knowledge base shapes its actions."""
+    family = envs.make("point_goal")
+    config = pnc.PNCConfig(ppo=TINY_PPO)
+    kb = ppo.init_params(config.ppo, family, jax.random.PRNGKey(0)).policy
+    active, _ = pnc.init_active(config, family, jax.random.PRNGKey(1), kb["obs_norm"])
+    silent = {**active, "adaptors": [{**a, "alpha": jnp.zeros_like(a["alpha"])} for a in active["adaptors"]]}
+    obs = jax.random.normal(jax.random.PRNGKey(2), (3, 5, family.obs_size))
+    noise = jax.random.normal(jax.random.PRNGKey(3), (3, 5, family.action_size))
+    column, plain = pnc.COLUMN.act(pnc.with_kb(silent, kb), obs, noise), networks.GAUSSIAN.act(silent, obs, noise)
+    np.testing.assert_allclose(column[0], plain[0], rtol=1e-6, atol=1e-6)
+    np.testing.assert_array_equal(column[1], plain[1])
+    lateral = pnc.COLUMN.dist(pnc.with_kb(active, kb), obs)[0]
+    assert float(jnp.max(jnp.abs(lateral - networks.GAUSSIAN.dist(active, obs)[0]))) > 1e-4
+    assert pnc.COLUMN.host_kind in host_acting.TWINS
 
 
 def test_a_bad_kb_statistics_names_the_field():

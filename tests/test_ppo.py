@@ -56,18 +56,6 @@ def test_gae_termination_cuts_bootstrap_but_truncation_does_not():
     chex.assert_trees_all_close(np.asarray(targets[:2, 0]), np.array([1.5, 1.0]), atol=1e-6)
 
 
-def test_log_prob_matches_closed_form():
-    params = networks.init_actor_critic(jax.random.PRNGKey(0), 3, 2, (8,), 0.5)
-    obs = jnp.ones((5, 3))
-    action, logp = networks.sample_action(params.policy, obs, jax.random.PRNGKey(1))
-    mean, log_std = networks.policy_dist(params.policy, obs)
-    std = np.exp(np.asarray(log_std))
-    manual = np.sum(-0.5 * ((np.asarray(action) - np.asarray(mean)) / std) ** 2 - np.log(std * np.sqrt(2 * np.pi)),
-                    axis=-1)
-    chex.assert_trees_all_close(np.asarray(logp), manual, rtol=1e-5)
-    assert not params.policy["log_std"].weak_type
-
-
 def _run(family, config, seed=0):
     optimizer = ppo.make_optimizer(config)
     params = ppo.init_params(config, family, jax.random.PRNGKey(seed))
@@ -141,38 +129,7 @@ def test_rollout_shapes_and_truncation_bootstrap_obs(point):
     chex.assert_trees_all_close(traj.last_obs, moved, atol=1e-6)
 
 
-# ------------------------------------------------------------------ observation normaliser and reward scale
-
-def test_obs_norm_merge_equals_statistics_of_all_data():
-    # Law: merging batches one by one gives the mean and (population) variance of all the data at once, and
-    # masked-out entries count for nothing.
-    rng = np.random.default_rng(0)
-    batches = [rng.normal(3.0, 2.0, size=(7, 4, 3)).astype(np.float32) for _ in range(3)]
-    masks = [(rng.random((7, 4)) < 0.7).astype(np.float32) for _ in range(3)]
-    norm = networks.obs_norm_init(3)
-    for x, m in zip(batches, masks):
-        norm = networks.obs_norm_update(norm, jnp.asarray(x), jnp.asarray(m))
-    kept = np.concatenate([x[m > 0] for x, m in zip(batches, masks)])
-    np.testing.assert_allclose(np.asarray(norm.mean), kept.mean(0), rtol=1e-5, atol=1e-5)
-    np.testing.assert_allclose(np.asarray(norm.var), kept.var(0), rtol=1e-4, atol=1e-5)
-    assert float(norm.count) == len(kept)
-    # An empty batch changes nothing.
-    same = networks.obs_norm_update(norm, jnp.asarray(batches[0]), jnp.zeros((7, 4), jnp.float32))
-    chex.assert_trees_all_equal(same, norm)
-
-
-def test_normalised_observations_and_no_gradient_into_the_statistics():
-    params = networks.init_actor_critic(jax.random.PRNGKey(0), 3, 2, (8,), 0.5)
-    obs = jnp.asarray(np.random.default_rng(1).normal(5.0, 3.0, size=(50, 3)), jnp.float32)
-    norm = networks.obs_norm_update(params.policy["obs_norm"], obs, jnp.ones((50,), jnp.float32))
-    policy = {**params.policy, "obs_norm": norm}
-    z = networks.normalize_obs(policy, obs)
-    np.testing.assert_allclose(np.asarray(z.mean(0)), 0.0, atol=1e-5)
-    np.testing.assert_allclose(np.asarray(z.std(0)), 1.0, atol=1e-4)
-    assert float(jnp.max(jnp.abs(networks.normalize_obs(policy, obs * 1e6)))) == networks.OBS_CLIP
-    grads = jax.grad(lambda p: jnp.sum(networks.policy_log_prob(p, obs, jnp.ones((50, 2)))))(policy)
-    chex.assert_trees_all_equal(grads["obs_norm"], jax.tree.map(jnp.zeros_like, norm))
-
+# ------------------------------------------------------------------ observation normalisation and reward scale
 
 @pytest.mark.parametrize("normalize", [True, False])
 def test_rl_step_updates_the_statistics_only_when_normalising(point, normalize):
@@ -238,7 +195,7 @@ def test_vanilla_surrogate_is_the_clipped_one_on_policy():
     rng = np.random.default_rng(3)
     obs = jnp.asarray(rng.normal(size=(40, 3)), jnp.float32)
     action = jnp.asarray(rng.normal(size=(40, 2)), jnp.float32)
-    batch = {"obs": obs, "action": action, "log_prob": networks.policy_log_prob(params.policy, obs, action),
+    batch = {"obs": obs, "action": action, "log_prob": networks.GAUSSIAN.log_prob(params.policy, obs, action),
              "valid": jnp.ones((40,), jnp.float32), "advantage": jnp.asarray(rng.normal(size=40), jnp.float32),
              "target": jnp.zeros((40,), jnp.float32)}
     def grad(b, surrogate):

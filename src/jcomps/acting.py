@@ -5,7 +5,7 @@ Array convention (everywhere in jcomps): trajectories are time-major, ``[T, B, .
 
 from __future__ import annotations
 
-from typing import Any, Callable, NamedTuple
+from typing import Any, Callable, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
@@ -40,30 +40,49 @@ class Trajectory(NamedTuple):
 
 ActFn = Callable[[Any, jax.Array, jax.Array], tuple[jax.Array, jax.Array]]
 """``act(policy, obs f32[..., obs_size], noise f32[..., A]) -> (action f32[..., A], log_prob f32[...])``: a policy's
-action for standard-normal ``noise`` (``networks.action_from_noise`` for the Gaussian policies of the PPO-based
-methods; a method with another policy, like PEARL's tanh-Gaussian, brings its own: ``Method.act``)."""
+action for standard-normal ``noise``, and its log-probability."""
 
 
-def rollout(family: Family, policy: Any, task, rng: jax.Array, num_envs: int,
-            act: ActFn = networks.action_from_noise) -> Trajectory:
-    """Runs ``num_envs`` fresh episodes of ``task`` for ``family.max_steps`` steps with ``policy`` (default: a
-    Gaussian policy; ``act`` makes the actions of any other kind).
+class Actor(NamedTuple):
+    """How a method's policies act in a rollout.
 
-    A family simulated on the host (``family.host_rollout``) runs the whole rollout there when ``act`` has a
-    NumPy twin (its ``host_kind``, see ``jcomps.host_acting``); the policy's noise is drawn here either way.
+    Attributes:
+      act: the policy's ``ActFn``.
+      host_kind: the name of ``act``'s NumPy twin (``jcomps.host_acting.TWINS``), with which a family simulated on
+        the host runs whole rollouts there; None: no twin (such a family is stepped through its ``step``).
+    """
+
+    act: ActFn
+    host_kind: Optional[str] = None
+
+
+def actor_of(policy_fns: networks.PolicyFns) -> Actor:
+    """The ``Actor`` of a Gaussian policy: ``policy_fns.act`` and its twin."""
+    return Actor(policy_fns.act, policy_fns.host_kind)
+
+
+GAUSSIAN = actor_of(networks.GAUSSIAN)
+"""The Gaussian MLP policy's ``Actor`` (the PPO-based methods'; PEARL's tanh-Gaussian has its own)."""
+
+
+def rollout(family: Family, policy: Any, task, rng: jax.Array, num_envs: int, actor: Actor = GAUSSIAN) -> Trajectory:
+    """Runs ``num_envs`` fresh episodes of ``task`` for ``family.max_steps`` steps with ``policy``, acting by
+    ``actor`` (default: the Gaussian MLP policy's).
+
+    A family simulated on the host (``family.host_rollout``) runs the whole rollout there when the actor has a
+    NumPy twin (``actor.host_kind``, see ``jcomps.host_acting``); the policy's noise is drawn here either way.
     """
     reset_rng, step_rng = jax.random.split(rng)
-    kind = getattr(act, "host_kind", None)
-    if family.host_rollout is not None and kind is not None:
+    if family.host_rollout is not None and actor.host_kind is not None:
         noise = jax.random.normal(step_rng, (family.max_steps, num_envs, family.action_size), jnp.float32)
-        obs, action, log_prob, reward, success, last_obs = family.host_rollout(kind, policy, task, noise)
+        obs, action, log_prob, reward, success, last_obs = family.host_rollout(actor.host_kind, policy, task, noise)
         zeros = jnp.zeros(reward.shape, jnp.float32)  # the host families never terminate (time limits truncate)
         return Trajectory(obs, action, log_prob, reward, zeros, zeros + 1.0, success, last_obs)
     state = jax.vmap(family.reset, (0, None))(jax.random.split(reset_rng, num_envs), task)
     step = jax.vmap(family.step, (0, 0, None))
 
     def body(state, noise):
-        action, log_prob = act(policy, state.obs, noise)
+        action, log_prob = actor.act(policy, state.obs, noise)
         nxt = step(state, action, task)
         valid = 1.0 - state.done
         done = nxt.done * valid

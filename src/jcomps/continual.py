@@ -204,7 +204,7 @@ def _evaluate(method: Method, state, slot, task, key, episodes: int):
     """(mean return, success rate) of ``episodes`` fresh episodes on ``task`` (learnt in ``slot``) of the policy
     ``base.policy_for`` gives; the rollout draws from ``key``, the policy (MAML+TL's adaptation) from its fold 7."""
     policy = base.policy_for(method, state, slot, task, jax.random.fold_in(key, 7))
-    traj = acting.rollout(method.family, policy, task, key, episodes, act=base.act_fn(method))
+    traj = acting.rollout(method.family, policy, task, key, episodes, actor=method.actor)
     return rl_loop.episode_stats(method.family, traj)
 
 

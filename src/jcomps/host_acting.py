@@ -4,9 +4,10 @@ A host-simulated family runs whole rollouts where its simulator lives (``Family.
 process steps its share of the episodes for all T_max steps and evaluates the policy itself, so a rollout costs
 one round trip instead of one ``pure_callback`` and one worker round trip per step (measured in
 docs/design.md, "MetaWorld on the host"). The worker has no JAX, so the policy is evaluated here, in NumPy, by
-the twin of the ``act`` function the method uses. An ``act`` names its twin with a ``host_kind`` attribute
-(``networks.action_from_noise``: ``"gaussian"``; PEARL's: ``"tanh_gaussian"``); an ``act`` without one (a
-user's own) makes ``acting.rollout`` fall back to stepping through the family's per-step ``step``.
+the twin of the ``act`` function the method uses. An ``acting.Actor`` names its twin (``host_kind``:
+``"gaussian"`` for ``networks.GAUSSIAN``, ``"pnc_column"`` for Progress & Compress's active column, ``"tanh_gaussian"``
+for PEARL's); an actor without one (a user's own) makes ``acting.rollout`` fall back to stepping through the
+family's per-step ``step``.
 
 Policies arrive as plain containers (``plain``: dicts, lists and NumPy arrays, so they pickle without jcomps
 classes) of one policy, no leading axes. Every product is computed row by row (``_dense``), so an episode's
@@ -61,7 +62,7 @@ def _mlp_mean(policy: dict, obs: np.ndarray) -> np.ndarray:
 
 
 def _column_mean(policy: dict, obs: np.ndarray) -> np.ndarray:
-    """``networks.column_mean``: an active column with lateral adaptors from its knowledge base."""
+    """``pnc.column_mean``: an active column with lateral adaptors from its knowledge base."""
     kb = policy["kb"]
     feats, h = [], _normalize(kb, obs)
     for layer in kb["mean"][:-1]:
@@ -79,14 +80,23 @@ def _column_mean(policy: dict, obs: np.ndarray) -> np.ndarray:
     return h
 
 
-def gaussian(policy: dict, obs: np.ndarray, noise: np.ndarray, episode: np.ndarray):
-    """``networks.action_from_noise``: mean + exp(log_std)·noise, with the noise's Gaussian log-probability."""
-    del episode
-    mean = _column_mean(policy, obs) if "kb" in policy else _mlp_mean(policy, obs)
-    log_std = policy["log_std"]
+def _from_noise(mean: np.ndarray, log_std: np.ndarray, noise: np.ndarray):
+    """``networks.PolicyFns.act``: mean + exp(log_std)·noise, with the noise's Gaussian log-probability."""
     action = mean + np.exp(log_std) * noise
     log_prob = np.sum(np.float32(-0.5) * np.square(noise) - log_std - np.float32(0.5) * LOG_2PI, axis=-1)
     return action, log_prob
+
+
+def gaussian(policy: dict, obs: np.ndarray, noise: np.ndarray, episode: np.ndarray):
+    """``networks.GAUSSIAN.act``: the Gaussian MLP policy."""
+    del episode
+    return _from_noise(_mlp_mean(policy, obs), policy["log_std"], noise)
+
+
+def pnc_column(policy: dict, obs: np.ndarray, noise: np.ndarray, episode: np.ndarray):
+    """``pnc.COLUMN.act``: Progress & Compress's active column (its ``kb`` entry the knowledge base)."""
+    del episode
+    return _from_noise(_column_mean(policy, obs), policy["log_std"], noise)
 
 
 def _softplus(x: np.ndarray) -> np.ndarray:
@@ -113,7 +123,7 @@ def tanh_gaussian(policy: dict, obs: np.ndarray, noise: np.ndarray, episode: np.
     return np.tanh(pre), np.sum(log_prob, axis=-1, dtype=np.float32)
 
 
-TWINS: dict[str, Callable] = {"gaussian": gaussian, "tanh_gaussian": tanh_gaussian}
+TWINS: dict[str, Callable] = {"gaussian": gaussian, "pnc_column": pnc_column, "tanh_gaussian": tanh_gaussian}
 """``host_kind`` -> twin ``(policy, obs f32[n, O], noise f32[n, A], episode i32[n]) -> (action f32[n, A],
 log_prob f32[n])``; ``episode`` is each row's episode within its rollout (for per-episode policy entries such
 as PEARL's z)."""

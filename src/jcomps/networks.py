@@ -1,13 +1,15 @@
 """Networks: a Gaussian MLP policy with a state-independent log-std, and an MLP value function.
 
 Parameters are plain pytrees (nested dicts of arrays) so they can be differentiated through, stacked over
-seeds and tasks, and checkpointed without any object state.
+seeds and tasks, and checkpointed without any object state. How a policy is applied is data too (``PolicyFns``,
+as brax's ``make_inference_fn``): ``GAUSSIAN`` for the MLP policy here; a method with its own network brings its
+own (Progress & Compress's active column, ``jcomps.methods.pnc.COLUMN``).
 """
 
 from __future__ import annotations
 
 import math
-from typing import NamedTuple, Sequence
+from typing import Any, Callable, NamedTuple, Optional, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -122,65 +124,8 @@ def init_actor_critic(rng: jax.Array, obs_size: int, action_size: int, hidden_si
 
 
 def policy_dist(policy: dict, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """Mean f32[..., A] and log-std f32[A] of the Gaussian policy at (raw) ``obs`` f32[..., obs_size].
-
-    A policy with a ``kb`` entry is an *active column* (Progress & Compress, ``column_mean``)."""
-    if "kb" in policy:
-        return column_mean(policy, obs), policy["log_std"]
+    """Mean f32[..., A] and log-std f32[A] of the Gaussian MLP policy at (raw) ``obs`` f32[..., obs_size]."""
     return mlp_apply(policy["mean"], normalize_obs(policy, obs)), policy["log_std"]
-
-
-def adaptors_init(rng: jax.Array, sizes: Sequence[int]) -> list[dict]:
-    """Layer-wise adaptors of an active column whose layers are ``sizes[0] -> ... -> sizes[-1]``: one for every
-    layer i >= 2 (its input from the knowledge base is the KB's hidden layer i − 1, of width ``sizes[i - 1]``).
-
-    Adaptor i (Schwarz et al. 2018, eq. 1, after Rusu et al. 2016): ``α_i ⊙ U_i tanh(V_i h^KB_{i−1} + c_i)``, an MLP
-    with one hidden layer as wide as its input, and a trainable scale vector α_i ~ U(0, 0.1) of layer i's width.
-    """
-    out = []
-    for i in range(1, len(sizes) - 1):
-        n_in, n_out = sizes[i], sizes[i + 1]
-        kv, ku, ka = jax.random.split(jax.random.fold_in(rng, i), 3)
-        out.append({
-            "v": jax.nn.initializers.orthogonal(math.sqrt(2.0))(kv, (n_in, n_in), jnp.float32),
-            "c": jnp.zeros((n_in,), jnp.float32),
-            "u": jax.nn.initializers.orthogonal(1.0)(ku, (n_in, n_out), jnp.float32),
-            "alpha": jax.random.uniform(ka, (n_out,), jnp.float32, 0.0, 0.1),
-        })
-    return out
-
-
-def kb_features(kb: dict, obs: jax.Array) -> list[jax.Array]:
-    """The hidden activations h^KB_1 … h^KB_{L−1} of the knowledge base's mean MLP at raw ``obs`` (its own
-    observation statistics), with no gradient into the knowledge base."""
-    kb = jax.lax.stop_gradient(kb)
-    h = normalize_obs(kb, obs)
-    feats = []
-    for layer in kb["mean"][:-1]:
-        h = jnp.tanh(h @ layer["w"] + layer["b"])
-        feats.append(h)
-    return feats
-
-
-def column_mean(policy: dict, obs: jax.Array) -> jax.Array:
-    """Action mean f32[..., A] of an active column: ``policy['mean']`` layers, with adaptor i adding
-    ``α_i ⊙ U_i tanh(V_i h^KB_{i−1} + c_i)`` to layer i's pre-activation (i >= 2; the last layer is linear).
-
-    ``policy['kb']`` (the frozen knowledge base, a plain policy) gets no gradient: the lateral connections carry
-    gradient into the active column and its adaptors only.
-    """
-    lead = obs.shape[:-1]
-    obs = obs.reshape((-1, obs.shape[-1]))
-    feats = kb_features(policy["kb"], obs)
-    h = normalize_obs(policy, obs)
-    layers = policy["mean"]
-    for i, layer in enumerate(layers):
-        pre = h @ layer["w"] + layer["b"]
-        if i >= 1:
-            a = policy["adaptors"][i - 1]
-            pre = pre + a["alpha"] * (jnp.tanh(feats[i - 1] @ a["v"] + a["c"]) @ a["u"])
-        h = pre if i == len(layers) - 1 else jnp.tanh(pre)
-    return h.reshape(lead + h.shape[-1:])
 
 
 def gaussian_log_prob(mean: jax.Array, log_std: jax.Array, action: jax.Array) -> jax.Array:
@@ -190,35 +135,43 @@ def gaussian_log_prob(mean: jax.Array, log_std: jax.Array, action: jax.Array) ->
 
 
 def gaussian_entropy(log_std: jax.Array) -> jax.Array:
-    """Entropy of the diagonal Gaussian with ``log_std`` f32[A]."""
-    return jnp.sum(log_std + 0.5 * (LOG_2PI + 1.0))
+    """Entropy of the diagonal Gaussian with ``log_std`` f32[..., A], summed over the last (action) axis."""
+    return jnp.sum(log_std + 0.5 * (LOG_2PI + 1.0), axis=-1)
 
 
-def policy_log_prob(policy: dict, obs: jax.Array, action: jax.Array) -> jax.Array:
-    """log π(action | obs) f32[...] for batched ``obs`` f32[..., obs_size] and ``action`` f32[..., A]."""
-    mean, log_std = policy_dist(policy, obs)
-    return gaussian_log_prob(mean, log_std, action)
+class PolicyFns(NamedTuple):
+    """How a diagonal-Gaussian policy is applied (as brax's ``make_inference_fn``): the method that owns the policy's
+    network brings its ``dist``; log-probabilities and actions derive from it.
 
-
-def sample_action(policy: dict, obs: jax.Array, rng: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """An action f32[..., A] drawn from π(· | obs) and its log-probability f32[...]."""
-    mean, _ = policy_dist(policy, obs)
-    return action_from_noise(policy, obs, jax.random.normal(rng, mean.shape, mean.dtype))
-
-
-def action_from_noise(policy: dict, obs: jax.Array, noise: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """The action mean + std·noise for standard-normal ``noise`` f32[..., A], and its log-probability f32[...].
-
-    Rollouts draw all their noise in one call before the time loop, which keeps random-number generation out of
-    the per-step work; the log-probability comes from the noise directly.
+    Attributes:
+      dist: ``(policy, obs f32[..., obs_size]) -> (mean f32[..., A], log_std f32[A])`` at raw observations.
+      host_kind: the name of ``act``'s NumPy twin (``jcomps.host_acting.TWINS``), with which a family simulated on
+        the host runs whole rollouts there; None: no twin (such a family is stepped through its ``step``).
     """
-    mean, log_std = policy_dist(policy, obs)
-    action = mean + jnp.exp(log_std) * noise
-    log_prob = jnp.sum(-0.5 * jnp.square(noise) - log_std - 0.5 * LOG_2PI, axis=-1)
-    return action, log_prob
+
+    dist: Callable[[Any, jax.Array], tuple[jax.Array, jax.Array]]
+    host_kind: Optional[str] = None
+
+    def log_prob(self, policy, obs: jax.Array, action: jax.Array) -> jax.Array:
+        """log π(action | obs) f32[...] for ``obs`` f32[..., obs_size] and ``action`` f32[..., A]."""
+        mean, log_std = self.dist(policy, obs)
+        return gaussian_log_prob(mean, log_std, action)
+
+    def act(self, policy, obs: jax.Array, noise: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """The action mean + std·noise f32[..., A] for standard-normal ``noise`` f32[..., A], and its
+        log-probability f32[...] (an ``acting.ActFn``).
+
+        Rollouts draw all their noise in one call before the time loop, which keeps random-number generation out of
+        the per-step work; the log-probability comes from the noise directly.
+        """
+        mean, log_std = self.dist(policy, obs)
+        action = mean + jnp.exp(log_std) * noise
+        log_prob = jnp.sum(-0.5 * jnp.square(noise) - log_std - 0.5 * LOG_2PI, axis=-1)
+        return action, log_prob
 
 
-action_from_noise.host_kind = "gaussian"  # its NumPy twin, for host-simulated families (jcomps.host_acting)
+GAUSSIAN = PolicyFns(policy_dist, host_kind="gaussian")
+"""The Gaussian MLP policy of ``init_actor_critic`` (``policy_dist``); its twin is ``jcomps.host_acting.gaussian``."""
 
 
 def value_apply(value: list, obs: jax.Array) -> jax.Array:

@@ -19,7 +19,7 @@ from typing import Any, Callable, NamedTuple, Optional
 
 import jax
 
-from jcomps import networks
+from jcomps import acting
 from jcomps.meta import MetaMetrics
 from jcomps.rl_loop import IterationMetrics
 
@@ -57,8 +57,9 @@ class Method(NamedTuple):
         count (the budget's iterations) already does.
       env_steps_before_task: env steps every task costs before its first iteration, solved or not (PEARL's
         collection with z from the prior, oyster's ``num_initial_steps``); samples-to-success include them.
-      act: how the method's policies act (``jcomps.acting.ActFn``); None: the Gaussian policies of the PPO-based
-        methods (``networks.action_from_noise``).
+      actor: how the method's policies act in rollouts (``jcomps.acting.Actor``): the Gaussian MLP policy's
+        (``acting.GAUSSIAN``) for the PPO-based methods, whose evaluated policy ``state.params.policy`` is one; PEARL
+        brings its tanh-Gaussian's.
       policy_for: ``(state, slot i32[], task, rng) -> policy``, the policy that acts on ``task``, the task learnt
         in ``slot`` (backward transfer, forgetting, replays); None: ``state.params.policy`` on every task. PEARL's
         infers its latent from the slot's replay buffer; MAML+TL's adapts θ by its inner step on fresh data of
@@ -76,7 +77,7 @@ class Method(NamedTuple):
     env_steps_per_iteration: Optional[int] = None
     env_steps_per_task: int = 0
     env_steps_before_task: int = 0
-    act: Optional[Callable] = None
+    actor: acting.Actor = acting.GAUSSIAN
     policy_for: Optional[Callable] = None
     adapt: Optional[Callable] = None
 
@@ -92,11 +93,6 @@ def env_steps_per_iteration(method: Method) -> int:
     if method.env_steps_per_iteration is not None:
         return method.env_steps_per_iteration
     return collection(method.config).num_trajectories * method.family.max_steps
-
-
-def act_fn(method: Method):
-    """The method's ``acting.ActFn``."""
-    return networks.action_from_noise if method.act is None else method.act
 
 
 def policy_for(method: Method, state, slot, task, rng):

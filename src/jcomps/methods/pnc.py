@@ -5,10 +5,10 @@ Two columns, both with hidden layers ``ppo.hidden_sizes`` (paper: [128, 128]):
 - the *knowledge base* (KB): a plain Gaussian policy, the consolidated one. ``state.params.policy`` is the KB, so
   backward transfer, held-out adaptation and the next task's laterals all read it.
 - the *active column*: a policy whose layers i >= 2 receive layer-wise adaptors from the KB's hidden layer i − 1
-  (``networks.column_mean``), and a value network. It is re-initialised, adaptors included, at every new task
-  (``reset_active``; Schwarz et al. recommend it for diverse tasks, and their Atari ablation keeps transfer
-  only with it) to the initial parameters drawn once per seed by ``init``; the observation statistics are data
-  and carry over.
+  (``column_mean``; PPO, rollouts and the compress phase apply it through ``COLUMN``), and a value network. It is
+  re-initialised, adaptors included, at every new task (``reset_active``; Schwarz et al. recommend it for diverse
+  tasks, and their Atari ablation keeps transfer only with it) to the initial parameters drawn once per seed by
+  ``init``; the observation statistics are data and carry over.
 
 Per task, with budget N and C = ceil(``compress_fraction`` · N) compress iterations:
 
@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import ClassVar, NamedTuple, Optional
+from typing import ClassVar, NamedTuple, Optional, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -89,6 +89,68 @@ class PNCConfig:
                     ", ".join(KB_STATISTICS))
 
 
+def adaptors_init(rng: jax.Array, sizes: Sequence[int]) -> list[dict]:
+    """Layer-wise adaptors of an active column whose layers are ``sizes[0] -> ... -> sizes[-1]``: one for every
+    layer i >= 2 (its input from the knowledge base is the KB's hidden layer i − 1, of width ``sizes[i - 1]``).
+
+    Adaptor i (Schwarz et al. 2018, eq. 1, after Rusu et al. 2016): ``α_i ⊙ U_i tanh(V_i h^KB_{i−1} + c_i)``, an MLP
+    with one hidden layer as wide as its input, and a trainable scale vector α_i ~ U(0, 0.1) of layer i's width.
+    """
+    out = []
+    for i in range(1, len(sizes) - 1):
+        n_in, n_out = sizes[i], sizes[i + 1]
+        kv, ku, ka = jax.random.split(jax.random.fold_in(rng, i), 3)
+        out.append({
+            "v": jax.nn.initializers.orthogonal(math.sqrt(2.0))(kv, (n_in, n_in), jnp.float32),
+            "c": jnp.zeros((n_in,), jnp.float32),
+            "u": jax.nn.initializers.orthogonal(1.0)(ku, (n_in, n_out), jnp.float32),
+            "alpha": jax.random.uniform(ka, (n_out,), jnp.float32, 0.0, 0.1),
+        })
+    return out
+
+
+def kb_features(kb: dict, obs: jax.Array) -> list[jax.Array]:
+    """The hidden activations h^KB_1 … h^KB_{L−1} of the knowledge base's mean MLP at raw ``obs`` (its own
+    observation statistics), with no gradient into the knowledge base."""
+    kb = jax.lax.stop_gradient(kb)
+    h = networks.normalize_obs(kb, obs)
+    feats = []
+    for layer in kb["mean"][:-1]:
+        h = jnp.tanh(h @ layer["w"] + layer["b"])
+        feats.append(h)
+    return feats
+
+
+def column_mean(policy: dict, obs: jax.Array) -> jax.Array:
+    """Action mean f32[..., A] of an active column: ``policy['mean']`` layers, with adaptor i adding
+    ``α_i ⊙ U_i tanh(V_i h^KB_{i−1} + c_i)`` to layer i's pre-activation (i >= 2; the last layer is linear).
+
+    ``policy['kb']`` (the frozen knowledge base, a plain policy) gets no gradient: the lateral connections carry
+    gradient into the active column and its adaptors only.
+    """
+    lead = obs.shape[:-1]
+    obs = obs.reshape((-1, obs.shape[-1]))
+    feats = kb_features(policy["kb"], obs)
+    h = networks.normalize_obs(policy, obs)
+    layers = policy["mean"]
+    for i, layer in enumerate(layers):
+        pre = h @ layer["w"] + layer["b"]
+        if i >= 1:
+            a = policy["adaptors"][i - 1]
+            pre = pre + a["alpha"] * (jnp.tanh(feats[i - 1] @ a["v"] + a["c"]) @ a["u"])
+        h = pre if i == len(layers) - 1 else jnp.tanh(pre)
+    return h.reshape(lead + h.shape[-1:])
+
+
+def column_dist(policy: dict, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Mean f32[..., A] (``column_mean``) and log-std f32[A] of an active column at (raw) ``obs``."""
+    return column_mean(policy, obs), policy["log_std"]
+
+
+COLUMN = networks.PolicyFns(column_dist, host_kind="pnc_column")
+"""How an active column (``with_kb``) is applied; its NumPy twin is ``jcomps.host_acting.pnc_column``."""
+
+
 class PNCState(NamedTuple):
     """params: ActorCriticParams (policy: the knowledge base; value: the active column's value network);
     active: the active column's policy (layers, log-std, observation statistics, adaptors; no ``kb`` entry);
@@ -119,7 +181,7 @@ def init_active(config: PNCConfig, family: Family, rng: jax.Array, obs_norm) -> 
     k_ac, k_ad = jax.random.split(rng)
     fresh = ppo.init_params(config.ppo, family, k_ac)
     sizes = (family.obs_size, *config.ppo.hidden_sizes, family.action_size)
-    policy = {**fresh.policy, "obs_norm": obs_norm, "adaptors": networks.adaptors_init(k_ad, sizes)}
+    policy = {**fresh.policy, "obs_norm": obs_norm, "adaptors": adaptors_init(k_ad, sizes)}
     return policy, fresh.value
 
 
@@ -160,7 +222,7 @@ def diagonal_fisher(kb: dict, obs: jax.Array, valid: jax.Array, rng: jax.Array) 
     actions = jax.lax.stop_gradient(actions)
 
     def score(o, a):
-        return jax.grad(lambda t: networks.policy_log_prob({**kb, **t}, o, a))(trainable(kb))
+        return jax.grad(lambda t: networks.GAUSSIAN.log_prob({**kb, **t}, o, a))(trainable(kb))
 
     grads = jax.vmap(score)(obs, actions)
     w = masked_weights(valid)
@@ -236,7 +298,7 @@ def compress(config: PNCConfig, family: Family, kb: dict, active: dict, task, fi
     k_roll, k_perm = jnp.moveaxis(jax.vmap(jax.random.split)(keys[:-2]), 1, 0)
 
     def collect(_, key):
-        traj = acting.rollout(family, acting_policy, task, key, pcfg.num_trajectories)
+        traj = acting.rollout(family, acting_policy, task, key, pcfg.num_trajectories, acting.actor_of(COLUMN))
         return None, (traj.obs.reshape((-1, traj.obs.shape[-1])), traj.valid.reshape(-1))
 
     _, (obs, valid) = jax.lax.scan(collect, None, k_roll)
@@ -252,7 +314,7 @@ def compress(config: PNCConfig, family: Family, kb: dict, active: dict, task, fi
     def one_iteration(carry, xs):
         theta, opt_state, bad = carry
         obs, valid, key, it = xs
-        t_mean, t_log_std = networks.policy_dist(acting_policy, obs)
+        t_mean, t_log_std = COLUMN.dist(acting_policy, obs)
         indices = ppo.minibatch_indices(pcfg, obs.shape[0], key)
 
         def step(carry, idx):
@@ -309,7 +371,7 @@ def make(family: Family, config: PNCConfig = PNCConfig(), progress_fn: Optional[
         params = networks.ActorCriticParams(with_kb(active, kb), value)
         report = with_fields(progress_fn, task=state.task_index)
         out = ppo.rl_step(pcfg, family, params, optimizer.init(params), task, k_rl, progress_fn=report,
-                          budget=n_progress)
+                          budget=n_progress, policy_fns=COLUMN)
         active = {k: v for k, v in out.params.policy.items() if k != "kb"}  # the KB is frozen: keep it exactly
         kb, fisher, anchor, _, bad = compress(config, family, kb, active, task, state.fisher, state.anchor,
                                               k_compress, n_compress, progress_fn=report)
