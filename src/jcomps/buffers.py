@@ -87,14 +87,14 @@ def trajectory_spec(T: int, B: int, obs_size: int, action_size: int) -> Trajecto
                       f(B, obs_size))
 
 
-def rollout_example(family, policy, num_envs: int, *actor) -> Trajectory:
-    """The shapes and dtypes of ``acting.rollout(family, policy, task, key, num_envs, *actor)`` on the family's
-    first task (no shape depends on which), traced by ``jax.eval_shape`` and never run: a Trajectory of
-    ``jax.ShapeDtypeStruct`` ([T, num_envs, ...]), the example a store of such batches is built from. ``actor``:
-    how ``policy`` acts, as ``acting.rollout`` takes it (default: its default). ``policy`` may be traced."""
+def rollout_example(family, policy, num_envs: int, actor: acting.Actor = acting.GAUSSIAN) -> Trajectory:
+    """The shapes and dtypes of ``acting.rollout(family, policy, task, key, num_envs, actor)`` on the family's first
+    task (no shape depends on which), traced by ``jax.eval_shape`` and never run: a Trajectory of
+    ``jax.ShapeDtypeStruct`` ([T, num_envs, ...]), the example a store of such batches is built from. ``policy``
+    may be traced."""
     def run(policy, key):
         task = family.make_task(jnp.float32(family.task_values[0]))
-        return acting.rollout(family, policy, task, key, num_envs, *actor)
+        return acting.rollout(family, policy, task, key, num_envs, actor)
 
     return jax.eval_shape(run, policy, jax.random.PRNGKey(0))
 

@@ -86,15 +86,15 @@ def make(family: Family, config: CoMPSConfig = CoMPSConfig(), progress_fn: Optio
     policy_opt, value_opt = meta.optimizers(mconfig)
     budget = config.ppo.budget_for(family)
     capacity = buffers.recent_capacity(budget, config.recent_fraction)
-    T, B = family.max_steps, config.ppo.num_trajectories
+    B = config.ppo.num_trajectories
 
     def init(rng: jax.Array) -> CoMPSState:
         rng, k_ac, k_v = jax.random.split(rng, 3)
         params = ppo.init_params(config.ppo, family, k_ac)
         value = meta.init_value_heads(k_v, family.obs_size, config.ppo.hidden_sizes, config.max_tasks)
         meta_state = meta.MetaState(params.policy, value, policy_opt.init(params.policy), value_opt.init(value))
-        stores = buffers.sequence_init(config.max_tasks, T, config.num_skilled, config.num_offpolicy,
-                                       family.obs_size, family.action_size)
+        stores = buffers.sequence_init_like(buffers.rollout_example(family, params.policy, B), config.max_tasks,
+                                            config.num_skilled, config.num_offpolicy)
         return CoMPSState(params, optimizer.init(params), meta_state, stores, rng, jnp.int32(0))
 
     def observe(aux, traj, iteration):
@@ -109,8 +109,8 @@ def make(family: Family, config: CoMPSConfig = CoMPSConfig(), progress_fn: Optio
                              "per task); make the method with more")
         rng, k_rl, k_off, k_meta = jax.random.split(state.rng, 4)
         opt_state = optimizer.init(state.params) if config.reset_optimizer else state.opt_state
-        aux0 = (buffers.skilled_init(T, config.num_skilled, family.obs_size, family.action_size),
-                buffers.recent_init(capacity, T, B, family.obs_size, family.action_size))
+        example = buffers.rollout_example(family, state.params.policy, B)  # one iteration's batch, shapes only
+        aux0 = (buffers.skilled_init_like(example, config.num_skilled), buffers.recent_init_like(example, capacity))
         report = with_fields(progress_fn, task=state.task_index)
         out = ppo.rl_step(config.ppo, family, state.params, opt_state, task, k_rl, observe=observe, aux=aux0,
                           progress_fn=report)

@@ -406,9 +406,9 @@ def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optio
         q = nets.sac.q_network.init(k_q)
         encoder = nets.encoder.init(k_enc, jnp.zeros((1, nets.context_size), jnp.float32))
         log_alpha = jnp.log(jnp.asarray(config.alpha, jnp.float32))
-        replay = buffers.transitions_init(config.max_tasks, capacity, family.obs_size, family.action_size)
-        contexts = buffers.transitions_init(config.max_tasks, n_prior * family.max_steps, family.obs_size,
-                                            family.action_size)
+        example = buffers.rollout_example(family, policy, config.num_trajectories, actor)
+        replay = buffers.transitions_init_like(example, config.max_tasks, capacity)
+        contexts = buffers.transitions_init_like(example, config.max_tasks, n_prior * family.max_steps)
         return PEARLState(networks.ActorCriticParams(policy, ()), q, q, encoder, optimizer.init(policy["net"]),
                           optimizer.init((q, encoder)), optimizer.init(log_alpha), log_alpha, replay, contexts, rng,
                           jnp.int32(0))
