@@ -216,7 +216,7 @@ def test_knowledge_base_is_unchanged_by_the_progress_phase():
     params = networks.ActorCriticParams(pnc.with_kb(active, kb), value)
     optimizer = ppo.make_optimizer(config.ppo)
     step = jax.jit(lambda p, o: ppo.rl_step(config.ppo, family, p, o, envs.task_at(family, 0),
-                                            jax.random.PRNGKey(4), stop_at_threshold=False))
+                                            jax.random.PRNGKey(4), stop_at_threshold=False, policy_fns=pnc.COLUMN))
     out = step(params, optimizer.init(params))
     for before, after in zip(jax.tree.leaves(kb), jax.tree.leaves(out.params.policy["kb"])):
         np.testing.assert_array_equal(before, after)
