@@ -107,6 +107,14 @@ class PPOConfig:
 SURROGATES = ("clipped", "vanilla")
 
 
+class PPOBased:
+    """Base of a method config whose RL step is PPO, held in its field ``ppo``: ``collection()`` (what every method
+    config has, ``jcomps.methods.base.collection``) is that part."""
+
+    def collection(self) -> PPOConfig:
+        return self.ppo
+
+
 class RLStepResult(NamedTuple):
     """What the RL step returns.
 

@@ -84,8 +84,12 @@ class Method(NamedTuple):
 
 def collection(config) -> Any:
     """The part of a method config that holds ``num_trajectories`` (episodes per iteration) and ``budget`` (with
-    ``budget_for(family)``): its ``ppo`` field for the PPO-based methods, the config itself otherwise (PEARL)."""
-    return getattr(config, "ppo", config)
+    ``budget_for(family)``), as the config's ``collection()`` says: its ``ppo`` part for the PPO-based methods (their
+    configs derive from ``ppo.PPOBased``), the config itself for PEARL."""
+    if not callable(getattr(type(config), "collection", None)):
+        raise TypeError(f"{type(config).__name__} has no collection(): a method config says where its episodes per "
+                        "iteration and budget are (derive from jcomps.ppo.PPOBased for a PPO part named ppo)")
+    return config.collection()
 
 
 def env_steps_per_iteration(method: Method) -> int:

@@ -24,7 +24,7 @@ from jcomps.methods.base import Method, TaskMetrics
 
 
 @dataclasses.dataclass(frozen=True)
-class CoMPSConfig:
+class CoMPSConfig(ppo.PPOBased):
     """Configuration of CoMPS."""
 
     ppo: ppo.PPOConfig = ppo.PPOConfig()

@@ -43,7 +43,7 @@ from jcomps.rl_loop import UpdateTerms
 
 
 @dataclasses.dataclass(frozen=True)
-class MAMLTLConfig:
+class MAMLTLConfig(ppo.PPOBased):
     """Configuration of MAML+TL. The outer update is PPO's (``ppo``: clipping, steps, minibatch, Adam learning
     rate — the outer learning rate is ``ppo.learning_rate``, grid field ``learning_rate``)."""
 

@@ -142,6 +142,10 @@ class PEARLConfig:
                                              "alpha", "policy_reg"})
     """Fields that may hold traced scalars (a hyperparameter-grid axis)."""
 
+    def collection(self) -> PEARLConfig:
+        """Where ``num_trajectories`` and ``budget_for`` are (``jcomps.methods.base.collection``): here."""
+        return self
+
     def __post_init__(self):
         check_finite_fields(self)
         positive_int = "an integer >= 1"

@@ -49,7 +49,7 @@ KB_STATISTICS = ("tasks", "first_task")
 
 
 @dataclasses.dataclass(frozen=True)
-class PNCConfig:
+class PNCConfig(ppo.PPOBased):
     """Configuration of Progress & Compress."""
 
     ppo: ppo.PPOConfig = ppo.PPOConfig(hidden_sizes=(128, 128))

@@ -16,7 +16,7 @@ from jcomps.methods.base import Method, TaskMetrics
 
 
 @dataclasses.dataclass(frozen=True)
-class PPOTLConfig:
+class PPOTLConfig(ppo.PPOBased):
     """Configuration of PPO+TL."""
 
     ppo: ppo.PPOConfig = ppo.PPOConfig()
