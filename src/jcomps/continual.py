@@ -26,7 +26,7 @@ def check_capacity(method: Method, num_tasks: int, start=0) -> None:
     """Raises ValueError if learning ``num_tasks`` tasks from task index ``start`` would pass the method's
     ``max_tasks`` (its experience-store slots): the stores would otherwise silently overwrite their last slot.
     A traced ``start`` is not checked (the sequence length still is)."""
-    max_tasks = getattr(method.config, "max_tasks", None)
+    max_tasks = base.task_slots(method.config)
     if max_tasks is None:
         return
     first = concrete_max(start) or 0

@@ -32,7 +32,7 @@ from typing import Any, Callable, Mapping, NamedTuple, Optional
 from jcomps import cli, envs, meta, ppo
 from jcomps.envs.base import Family
 from jcomps.methods import base, comps, maml_tl, pearl, pnc, ppo_tl
-from jcomps.methods.base import Method, TaskMetrics, collection
+from jcomps.methods.base import Method, TaskMetrics, collection, task_slots
 from jcomps.progress import ProgressFn
 from jcomps.registry import Registry
 
@@ -135,12 +135,6 @@ def default_config(name: str, family: Family | str):
     if entry.rl_step:
         config = dataclasses.replace(config, ppo=dataclasses.replace(config.ppo, **entry.rl_step))
     return config
-
-
-def task_slots(config) -> Optional[int]:
-    """The task slots a method config's state holds (its ``max_tasks``: CoMPS's experience stores, PEARL's replay
-    buffers), None for a method that learns any number of tasks. The one place that asks a config for it."""
-    return getattr(config, "max_tasks", None)
 
 
 def resolve_config(name: str, family: Family | str, *, stored: Optional[Mapping] = None,

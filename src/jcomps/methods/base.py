@@ -92,6 +92,12 @@ def collection(config) -> Any:
     return config.collection()
 
 
+def task_slots(config) -> Optional[int]:
+    """The task slots a method config's state holds (its field ``max_tasks``: CoMPS's experience stores, PEARL's
+    replay buffers), None for a method that learns any number of tasks. The one place that asks a config for it."""
+    return getattr(config, "max_tasks", None)
+
+
 def env_steps_per_iteration(method: Method) -> int:
     """Env steps one iteration of ``method`` collects (MAML+TL collects two batches per iteration)."""
     if method.env_steps_per_iteration is not None:
