@@ -80,3 +80,11 @@ def test_a_registered_method_runs_through_the_runner_and_starts_each_task_with_a
                                                           jax.tree.leaves(state.fresh.value))]
     assert any(changed)  # the critic trained on the task ...
     np.testing.assert_array_equal(jax.tree.leaves(learnt.fresh.value)[0], jax.tree.leaves(state.fresh.value)[0])
+
+
+def test_the_readme_shows_the_quickstart_as_it_is():
+    """The README's Python example is examples/quickstart.py, verbatim (the file is what a user runs)."""
+    root = DOC.parents[1]
+    readme = (root / "README.md").read_text()
+    quickstart = (root / "examples" / "quickstart.py").read_text()
+    assert quickstart.strip() in [b.strip() for b in re.findall(r"```python\n(.*?)```", readme, flags=re.S)]
