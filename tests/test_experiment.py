@@ -408,3 +408,21 @@ def test_read_latest_skips_an_unreadable_step_and_changes_nothing(full_run, tmp_
     assert step == steps[-2] and "cannot be read" in warnings[0]
     assert sorted(str(p) for p in tmp_path.rglob("*")) == before  # read-only: nothing moved or written
     assert checkpoint.read_latest(str(tmp_path / "none"), print) is None
+
+
+def test_to_host_takes_empty_arrays_sharded_over_devices():
+    """No backward-transfer tasks make [members, tasks, 0] metrics sharded over the members' devices; jax's
+    device_get cannot assemble such an empty array (it crashed every multi-device run with --backward-tasks 0)."""
+    devices = jax.devices()
+    if len(devices) < 2:
+        pytest.skip("needs two host devices")
+    sharding = jax.sharding.NamedSharding(jax.sharding.Mesh(np.array(devices[:2]), ("m",)),
+                                          jax.sharding.PartitionSpec("m"))
+    # As the programs make it: an empty output of a compiled program, sharded over the devices.
+    empty = jax.jit(lambda x: x * 2, out_shardings=sharding)(jax.device_put(np.zeros((2, 3, 0), np.float32), sharding))
+    with pytest.raises(ValueError, match="could not broadcast"):  # jax 0.10's own device_get (if fixed: drop to_host)
+        jax.device_get(empty)
+    full = jax.device_put(np.arange(6, dtype=np.float32).reshape(2, 3), sharding)
+    out = experiment.to_host({"empty": empty, "full": full})
+    assert out["empty"].shape == (2, 3, 0) and out["empty"].dtype == np.float32
+    np.testing.assert_array_equal(out["full"], np.arange(6).reshape(2, 3))

@@ -190,6 +190,12 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
     return job.finish()
 
 
+def to_host(tree):
+    """``tree``'s arrays as NumPy arrays. An empty array sharded over several devices (e.g. no backward-transfer
+    tasks: [members, tasks, 0]) is made on the host: jax 0.10's ``device_get`` of one fails to assemble it."""
+    return jax.tree.map(lambda x: np.zeros(x.shape, x.dtype) if x.size == 0 else np.asarray(jax.device_get(x)), tree)
+
+
 class _ProgramRun:
     """One program's run (``run_program``): what stays fixed while it runs (its members, compiled programs, the
     task sequences and keys on the devices), the host copies of its metrics, its checkpoints and its events.
@@ -342,7 +348,7 @@ class _ProgramRun:
                                                     self.hparams)
             self.compile_heldout(states)
             task_metrics.append(continual.chunk_metrics(learnt, evaluation))
-        return states, jax.device_get(jax.tree.map(lambda *x: jnp.stack(x, axis=1), *task_metrics))
+        return states, to_host(jax.tree.map(lambda *x: jnp.stack(x, axis=1), *task_metrics))
 
     def evaluate(self, states, column: int, learnt: int, keys, after: int):
         """The evaluations of ``states`` (``learnt``: the tasks to evaluate) into column ``column`` of ``heldout``
@@ -350,7 +356,7 @@ class _ProgramRun:
         self.compile_heldout(states)
         self.emit(EVALUATING, after_tasks=after, learnt=learnt)
         began = time.time()
-        out = jax.device_get(self.program.heldout(states, self.heldout_tasks, self.program.put(keys), self.sequences,
+        out = to_host(self.program.heldout(states, self.heldout_tasks, self.program.put(keys), self.sequences,
                                                   np.int32(learnt), self.backward_keys, self.seed_index, self.hparams))
         jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), column), np.asarray(src)), self.heldout, out)
         self.emit(EVALUATED, after_tasks=after, seconds=time.time() - began)
