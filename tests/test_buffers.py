@@ -167,12 +167,12 @@ def test_stores_take_the_examples_dtypes():
 def test_rollout_example_has_a_rollouts_shapes():
     family = envs.make("point_goal")
     policy = jax.jit(ppo.init_params, static_argnums=(0, 1))(ppo.PPOConfig(), family, jax.random.PRNGKey(0)).policy
-    example = buffers.rollout_example(family, policy, 3)
+    example = buffers.rollout_example(family, 3)
     assert all(isinstance(x, jax.ShapeDtypeStruct) for x in jax.tree.leaves(example))
     task = family.make_task(jnp.float32(family.task_values[-1]))
     ran = jax.jit(acting.rollout, static_argnums=(0, 4))(family, policy, task, jax.random.PRNGKey(1), 3)
     assert _shapes(example) == _shapes(ran)
-    traced = jax.jit(lambda p: jnp.zeros(buffers.rollout_example(family, p, 3).obs.shape))(policy)  # a traced policy
+    traced = jax.jit(lambda p: jnp.zeros(buffers.rollout_example(family, 3).obs.shape))(policy)  # a traced policy
     chex.assert_shape(traced, (family.max_steps, 3, family.obs_size))
     # The stores a method builds from it are those of the family's sizes given by hand.
     T_max, O, A = family.max_steps, family.obs_size, family.action_size

@@ -93,7 +93,7 @@ def make(family: Family, config: CoMPSConfig = CoMPSConfig(), progress_fn: Optio
         params = ppo.init_params(config.ppo, family, k_ac)
         value = meta.init_value_heads(k_v, family.obs_size, config.ppo.hidden_sizes, config.max_tasks)
         meta_state = meta.MetaState(params.policy, value, policy_opt.init(params.policy), value_opt.init(value))
-        stores = buffers.sequence_init_like(buffers.rollout_example(family, params.policy, B), config.max_tasks,
+        stores = buffers.sequence_init_like(buffers.rollout_example(family, B), config.max_tasks,
                                             config.num_skilled, config.num_offpolicy)
         return CoMPSState(params, optimizer.init(params), meta_state, stores, rng, jnp.int32(0))
 
@@ -109,7 +109,7 @@ def make(family: Family, config: CoMPSConfig = CoMPSConfig(), progress_fn: Optio
                              "per task); make the method with more")
         rng, k_rl, k_off, k_meta = jax.random.split(state.rng, 4)
         opt_state = optimizer.init(state.params) if config.reset_optimizer else state.opt_state
-        example = buffers.rollout_example(family, state.params.policy, B)  # one iteration's batch, shapes only
+        example = buffers.rollout_example(family, B)  # one iteration's batch, shapes only
         aux0 = (buffers.skilled_init_like(example, config.num_skilled), buffers.recent_init_like(example, capacity))
         report = with_fields(progress_fn, task=state.task_index)
         out = ppo.rl_step(config.ppo, family, state.params, opt_state, task, k_rl, observe=observe, aux=aux0,

@@ -410,7 +410,7 @@ def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optio
         q = nets.sac.q_network.init(k_q)
         encoder = nets.encoder.init(k_enc, jnp.zeros((1, nets.context_size), jnp.float32))
         log_alpha = jnp.log(jnp.asarray(config.alpha, jnp.float32))
-        example = buffers.rollout_example(family, policy, config.num_trajectories, actor)
+        example = buffers.rollout_example(family, config.num_trajectories)
         replay = buffers.transitions_init_like(example, config.max_tasks, capacity)
         contexts = buffers.transitions_init_like(example, config.max_tasks, n_prior * family.max_steps)
         return PEARLState(networks.ActorCriticParams(policy, ()), q, q, encoder, optimizer.init(policy["net"]),
