@@ -6,6 +6,7 @@ import re
 import sys
 import types
 
+import chex
 import jax
 import numpy as np
 import pytest
@@ -74,7 +75,12 @@ def test_a_registered_method_runs_through_the_runner_and_starts_each_task_with_a
     method = methods.make("ppo_fresh_critic", family, configs["ppo_fresh_critic"])
     state = method.init(jax.random.PRNGKey(0))
     task = envs.task_at(family, 0)
-    learnt, _ = jax.jit(method.learn_task)(state, task)
+    learn = jax.jit(method.learn_task)
+    learnt, metrics = learn(state, task)
+    # Whatever critic the state carries, the task is learnt from the initial one: the same result.
+    carried = state._replace(params=state.params._replace(value=jax.tree.map(lambda x: x + 1.0, state.params.value)))
+    again, metrics_again = learn(carried, task)
+    chex.assert_trees_all_equal((learnt.params, metrics), (again.params, metrics_again))
     assert jax.tree.leaves(learnt.params.value)[0].shape == jax.tree.leaves(state.fresh.value)[0].shape
     changed = [not np.array_equal(a, b) for a, b in zip(jax.tree.leaves(learnt.params.value),
                                                           jax.tree.leaves(state.fresh.value))]
