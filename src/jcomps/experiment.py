@@ -357,8 +357,8 @@ class _ProgramRun:
         self.emit(EVALUATING, after_tasks=after, learnt=learnt)
         began = time.time()
         out = to_host(self.program.heldout(states, self.heldout_tasks, self.program.put(keys), self.sequences,
-                                                  np.int32(learnt), self.backward_keys, self.seed_index, self.hparams))
-        jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), column), np.asarray(src)), self.heldout, out)
+                                           np.int32(learnt), self.backward_keys, self.seed_index, self.hparams))
+        jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), column), src), self.heldout, out)
         self.emit(EVALUATED, after_tasks=after, seconds=time.time() - began)
         return out
 
