@@ -27,7 +27,6 @@ One line per case, ``key=value`` pairs. Run it alone: compile times are CPU-boun
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
 import re
 import shlex
@@ -42,7 +41,6 @@ from jcomps import hostdevices
 def bench_programs(family_name: str, method: str, seeds: int, devices: int, num_tasks: int,
                    programs: list[str]) -> list[str]:
     import jax
-    import jax.numpy as jnp
     import numpy as np
 
     from jcomps import continual, envs, grid as grids, methods
@@ -50,9 +48,7 @@ def bench_programs(family_name: str, method: str, seeds: int, devices: int, num_
     from jcomps.programs import Programs
 
     family = envs.make(family_name)
-    config = methods.default_config(method, family)
-    if hasattr(config, "max_tasks"):  # as run_sequence.py: one experience slot per task of the run
-        config = dataclasses.replace(config, max_tasks=num_tasks)
+    config = methods.resolve_config(method, family, num_tasks=num_tasks)  # as run_sequence.py builds it
     eval_config = continual.EvalConfig().resolve(family_name)
     spec, = grids.programs(method, config, ())
     program = Programs().get(method, family_name, spec.config, eval_config, 2, devices)

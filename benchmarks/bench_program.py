@@ -24,7 +24,6 @@ device (XLA runs one program on about one core); on a GPU, the GPU.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
 import time
 
@@ -51,10 +50,7 @@ def bench(family_name: str, method: str, members: int, tasks: int, budget: int, 
     from jcomps.programs import Programs
 
     family = envs.make(family_name)
-    config = methods.default_config(method, family)
-    config = dataclasses.replace(config, ppo=dataclasses.replace(config.ppo, budget=budget))
-    if hasattr(config, "max_tasks"):
-        config = dataclasses.replace(config, max_tasks=tasks)
+    config = methods.resolve_config(method, family, shared={"budget": budget}, num_tasks=tasks)
     B, T = config.ppo.num_trajectories, family.max_steps
     eval_config = continual.EvalConfig(backward_tasks=0, heldout_iterations=0)
 
