@@ -2,11 +2,11 @@
 
 Methods of one study can run in separate processes, e.g. side by side on one GPU, where a method alone leaves
 the GPU mostly idle, or on different machines: give each its own ``--out`` with the same options apart from
-``--methods``, then merge. Everything but the methods and the chunking must agree (family, sequence, seeds, tasks,
-evaluation, grid, device count); the methods must not overlap and must have finished (``--partial``: or have
-finished a chunk, and the report covers the tasks every method has finished). Chunking may differ (a
-slow method checkpointing after every task beside others in chunks of 5: the methods' results do not depend on
-it); held-out measurements are then at each method's own chunk boundaries, which the report plots as they are,
+``--methods``, then merge. Everything but the methods, the chunking and the process count must agree (family,
+sequence, seeds, tasks, evaluation, grid, device count); the methods must not overlap and must have finished
+(``--partial``: or have finished a chunk, and the report covers the tasks every method has finished). Chunking
+may differ (a slow method checkpointing after every task beside others in chunks of 5: the methods' results do not
+depend on it); held-out measurements are then at each method's own chunk boundaries, which the report plots as they are,
 and the merged ``run.json`` lists each method's ``chunk_tasks`` under ``run.chunk_tasks_by_method``. The merged
 directory gets ``run.json`` and ``raw/``, then ``results.json``, the plots and ``significance.md`` as if one run
 had run them all (checkpoints stay in the sources); a source that ran ``ppo`` (from scratch) gives every method's
@@ -24,7 +24,7 @@ import os
 import shutil
 import sys
 
-from jcomps import report, results, rundir
+from jcomps import distributed, report, results, rundir
 from jcomps.checkpoint import RunError
 
 
@@ -37,7 +37,7 @@ def merged_description(descriptions: list) -> dict:
     out["run"]["methods"], out["methods"], overrides, chunks = [], {}, {}, {}
     for d, desc in descriptions:
         for key in sorted(set(first) | set(desc)):
-            if key in ("methods", "overrides"):
+            if key in ("methods", "overrides", "processes"):  # results do not depend on the process count
                 continue
             a, b = first.get(key), desc.get(key)
             if key == "run":
@@ -57,6 +57,7 @@ def merged_description(descriptions: list) -> dict:
     if len(set(chunks.values())) > 1:
         out["run"]["chunk_tasks_by_method"] = chunks
     out.pop("overrides", None)
+    out.pop("processes", None)  # how the sources were spread; the merged directory is not resumed
     if overrides:
         out["overrides"] = overrides
     return out
@@ -115,7 +116,10 @@ def main(argv=None):
                         help="take only these methods from the sources (default: all; e.g. the finished ones)")
     parser.add_argument("--partial", action="store_true",
                         help="merge unfinished runs too: the report covers the tasks every method has finished")
+    distributed.add_args(parser)
     args = parser.parse_args(argv)
+    if not distributed.tool_process(args, parser):
+        return
     try:
         merge(args.out, args.sources, args.baseline, args.methods, args.partial)
     except RunError as err:

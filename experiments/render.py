@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jcomps import checkpoint, continual, envs, experiment, members, methods, report
+from jcomps import checkpoint, continual, distributed, envs, experiment, members, methods, report
 from jcomps import grid as grids
 
 
@@ -203,7 +203,10 @@ def main(argv=None):
                         help="where the page loads brax's viewer.js from (default: brax's release on the "
                              "jsDelivr CDN)")
     parser.add_argument("--out", default=None, help="where to write (default: RUN_DIR/render)")
+    distributed.add_args(parser)
     args = parser.parse_args(argv)
+    if not distributed.tool_process(args, parser):
+        return
     if args.episodes is not None and args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
     try:

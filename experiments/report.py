@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from jcomps import experiment, report
+from jcomps import distributed, experiment, report
 
 
 def main(argv=None):
@@ -21,7 +21,10 @@ def main(argv=None):
                              "the run has it)")
     parser.add_argument("--partial", action="store_true",
                         help="report an unfinished run on the tasks every method has finished so far")
+    distributed.add_args(parser)
     args = parser.parse_args(argv)
+    if not distributed.tool_process(args, parser):
+        return
     try:
         results = report.write(args.run_dir, baseline=args.baseline, partial=args.partial)
     except experiment.RunError as err:

@@ -26,10 +26,10 @@ import os
 import sys
 
 
-def _set_host_devices(argv) -> None:
-    """``--devices N`` must reach XLA before JAX is imported (the CPU device count and its thread pool). Without
-    it: the count stored in the run directory on ``--resume`` (identical results need the same count), else one
-    device per core."""
+def _set_host_devices(argv, processes: int = 1) -> None:
+    """``--devices N`` must reach XLA before JAX is imported (the CPU device count and its thread pool; with several
+    processes, each process's own). Without it: the count stored in the run directory on ``--resume`` (identical
+    results need the same count; the stored count is over all ``processes``), else one device per core."""
     def option(name):
         for i, arg in enumerate(argv):
             if arg == name and i + 1 < len(argv):
@@ -43,7 +43,8 @@ def _set_host_devices(argv) -> None:
         try:
             with open(os.path.join(option("--out"), "run.json")) as f:
                 stored = json.load(f).get("devices")
-            count = str(stored) if isinstance(stored, int) and stored >= 1 else None
+            ok = isinstance(stored, int) and stored >= processes and stored % processes == 0
+            count = str(stored // processes) if ok else None  # else the resume is refused, naming the counts
         except (OSError, ValueError):
             pass  # parse_args reports a missing or unreadable run directory
     from jcomps import hostdevices
@@ -54,15 +55,27 @@ def _set_host_devices(argv) -> None:
         hostdevices.configure(int(count))
 
 
+def _start(argv):
+    """Before JAX starts: this process's place in a run of several (``jcomps.distributed``), then its host devices,
+    then joining the others."""
+    from jcomps import distributed
+
+    cluster = distributed.from_argv(argv, "run_sequence.py")
+    _set_host_devices(argv, cluster.num_processes)
+    distributed.start(cluster)
+    return cluster
+
+
 if __name__ == "__main__":
-    _set_host_devices(sys.argv[1:])
+    _start(sys.argv[1:])
 
 import argparse  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from jcomps import cli, compile_cache, continual, envs, experiment, hostdevices, methods, report  # noqa: E402
+from jcomps import cli, compile_cache, continual, distributed, envs, experiment, hostdevices, methods  # noqa: E402
+from jcomps import report  # noqa: E402
 from jcomps import grid as grids  # noqa: E402
 from jcomps.programs import Programs  # noqa: E402
 
@@ -102,6 +115,7 @@ def parse_args(argv=None):
                              "gmps_ppo_is.meta.inner_learning_rate=0.01 or --set comps.ppo.hidden_sizes=64x32; wins "
                              "over the shared options, recorded in run.json (on --resume the stored ones are used; "
                              "different ones are refused)")
+    distributed.add_args(parser)
     cli.add_config_args(parser, [experiment.RunConfig, continual.EvalConfig])
     cli.add_config_args(parser, [methods.config_class(m) for m in methods.METHODS])
     args = parser.parse_args(argv)
@@ -193,22 +207,38 @@ def _from_stored(args):
 
 def main(argv=None):
     args = parse_args(argv)
+    cluster = distributed.settings(args)
     try:
         cache = compile_cache.configure(args.compile_cache)
     except ValueError as err:
         print(f"run_sequence.py: error: --compile-cache: {err}", file=sys.stderr)
         sys.exit(2)
-    print(f"compile cache: {cache or 'off'}" + ("" if cache is None or compile_cache.callbacks_cached() else
-                                              " (programs with progress callbacks are not cached by this jax)"),
-          flush=True)
+    writer = distributed.is_writer()
+    if writer:
+        print(f"compile cache: {cache or 'off'}" + ("" if cache is None or compile_cache.callbacks_cached() else
+                                                  " (programs with progress callbacks are not cached by this jax)"),
+              flush=True)
+    if cluster.distributed:
+        _say_processes(cluster, writer)
+    receiver = None
     try:
-        console = Console(lambda line: print(line, flush=True), args.out, args.tensorboard)
-        experiment.run(args.out, args.run, args.eval, args.configs, resume=args.resume, progress_fn=console,
+        console = Console(lambda line: print(line, flush=True), args.out, args.tensorboard) if writer else None
+        receiver = distributed.progress_receiver(console)
+        experiment.run(args.out, args.run, args.eval, args.configs, resume=args.resume, progress_fn=receiver,
                        grid=args.grid, overrides=args.overrides, programs=PROGRAMS)
+        _close(receiver)
+        if not writer:  # process 0 writes the report and prints the results
+            return
         results = report.write(args.out, baseline=args.baseline)
     except experiment.RunError as err:
         print(f"error: {err}", file=sys.stderr)
+        if cluster.distributed:
+            distributed.exit_now(2)
         sys.exit(2)
+    except Exception as err:  # noqa: BLE001 - a process of several stops at once so that the others see it gone
+        if not cluster.distributed:
+            raise
+        distributed.report_and_exit(err, cluster)
     print(f"\nmean iterations-to-success per task ({args.run.seeds} seeds):")
     for name, m in results["methods"].items():
         print(f"  {name:14s} {np.round(m['iterations_to_success_mean'], 1).tolist()}")
@@ -223,6 +253,21 @@ def main(argv=None):
               ", ".join(f"{n} {v:.1f}" for n, v in later.items()))
     print(open(os.path.join(args.out, "significance.md")).read())
     print(f"results, plots and checkpoints in {args.out}/")
+
+
+def _say_processes(cluster, writer: bool) -> None:
+    """One line per process: where it is in the run and which members it computes."""
+    import jax
+
+    print(f"process {cluster.process_id} of {cluster.num_processes}" +
+          (f" ({cluster.detected})" if cluster.detected else "") + f": {jax.local_device_count()} of "
+          f"{jax.device_count()} devices; " + ("writes the run directory and shows every process's progress"
+                                               if writer else "its progress goes to process 0"), flush=True)
+
+
+def _close(receiver) -> None:
+    if hasattr(receiver, "close"):
+        receiver.close()
 
 
 if __name__ == "__main__":

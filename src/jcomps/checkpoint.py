@@ -4,6 +4,11 @@ A checkpoint (``record``) holds the flat leaves of the members' states (paramete
 stores, rng, counters), the metrics so far and the run's counters, so a resumed run continues exactly where it
 stopped (brax saves parameters only). An unreadable checkpoint is moved aside, never deleted, and the one before
 it is tried.
+
+The states are saved as the sharded arrays they are, so that a run of several processes (``jcomps.distributed``)
+uses Orbax's multi-process checkpointing: every process writes its own members' shards and restores them, process
+0 writes the metrics and counters (NumPy arrays every process holds whole) and, once all are written, commits the
+step (renames it into place), so a step is there whole or not at all.
 """
 
 from __future__ import annotations
@@ -16,15 +21,19 @@ from typing import Optional
 import jax
 import numpy as np
 
+from jcomps import distributed
+
 
 class RunError(ValueError):
     """A run directory or its options cannot be used as asked (the runner turns it into exit code 2)."""
 
 
 def flatten(tree) -> dict:
-    """The leaves of ``tree`` by index; empty arrays (e.g. backward transfer with ``--backward-tasks 0``) hold
-    nothing and are left out, since Orbax refuses to save zero-size arrays."""
-    return {f"{i:05d}": np.asarray(x) for i, x in enumerate(jax.tree.leaves(tree)) if np.size(x) > 0}
+    """The leaves of ``tree`` by index (device arrays stay as they are, sharded; anything else becomes a NumPy
+    array); empty arrays (e.g. backward transfer with ``--backward-tasks 0``) hold nothing and are left out, since
+    Orbax refuses to save zero-size arrays."""
+    return {f"{i:05d}": x if isinstance(x, jax.Array) else np.asarray(x)
+            for i, x in enumerate(jax.tree.leaves(tree)) if np.size(x) > 0}
 
 
 def unflatten(like, flat: dict):
@@ -55,33 +64,49 @@ class Checkpoints:
             options=self.ocp.CheckpointManagerOptions(max_to_keep=2, create=True, enable_async_checkpointing=False))
 
     def _set_aside(self, step: int) -> str:
-        """Moves an unreadable step out of the way (kept for inspection, never deleted)."""
+        """Moves an unreadable step out of the way (kept for inspection, never deleted; with several processes
+        process 0 moves it while the others wait)."""
         dest = os.path.join(self.directory + "-unreadable", f"{step}-{time.strftime('%Y%m%d-%H%M%S')}")
-        os.makedirs(os.path.dirname(dest), exist_ok=True)
-        shutil.move(os.path.join(self.directory, str(step)), dest)
+        if distributed.is_writer():
+            os.makedirs(os.path.dirname(dest), exist_ok=True)
+            shutil.move(os.path.join(self.directory, str(step)), dest)
+        distributed.barrier(f"checkpoint step {step} set aside")
         return dest
 
     def save(self, step: int, tree: dict):
-        self.manager.save(step, args=self.ocp.args.StandardSave(tree), force=True)
-        self.manager.wait_until_finished()
+        """Writes checkpoint ``step`` (every process calls it; ``distributed.PeerLost`` if a process is gone)."""
+        try:
+            self.manager.save(step, args=self.ocp.args.StandardSave(tree), force=True)
+            self.manager.wait_until_finished()
+        except Exception as err:  # noqa: BLE001
+            if distributed.process_count() > 1:
+                raise distributed.PeerLost(f"lost the other processes while writing checkpoint step {step} "
+                                           f"({type(err).__name__}: {str(err)[:200]})") from err
+            raise
 
     def restore_latest(self, like: dict, warn) -> Optional[tuple[int, dict]]:
         """The newest readable checkpoint (an unreadable one is set aside and reported through ``warn(message)``,
-        and the one before it is tried)."""
+        and the one before it is tried). Device arrays in ``like`` are restored as device arrays with their
+        sharding (each process its own shards), anything else as NumPy arrays. With several processes a step is
+        readable when every process read it."""
         errors = []
+        target = jax.tree.map(_target, like)
         for step in sorted(self.manager.all_steps(), reverse=True):
             try:
-                target = jax.tree.map(np.asarray, like)
                 tree = self.manager.restore(step, args=self.ocp.args.StandardRestore(target))
-                tree = jax.tree.map(np.asarray, tree)
+                tree = jax.tree.map(lambda t, x: x if isinstance(t, jax.ShapeDtypeStruct) else np.asarray(x),
+                                    target, tree)
                 _check_like(target, tree)
+                error = None
+            except Exception as err:  # noqa: BLE001 - any failure to read means this checkpoint is unusable
+                error = f"step {step}: {type(err).__name__}: {str(err)[:300]}"
+            if distributed.all_agree(error is None, f"reading checkpoint step {step}"):
                 if errors:
                     self._open()
                 return step, tree
-            except Exception as err:  # noqa: BLE001 - any failure to read means this checkpoint is unusable
-                errors.append(f"step {step}: {type(err).__name__}: {str(err)[:300]}")
-                dest = self._set_aside(step)
-                warn(f"checkpoint step {step} in {self.directory} cannot be read ({errors[-1]}); moved to {dest}")
+            errors.append(error or f"step {step}: another process could not read it")
+            dest = self._set_aside(step)
+            warn(f"checkpoint step {step} in {self.directory} cannot be read ({errors[-1]}); moved to {dest}")
         if errors:
             raise RunError("no readable checkpoint (unreadable ones were moved to "
                            f"{self.directory}-unreadable): " + " | ".join(errors))
@@ -101,16 +126,29 @@ def read_latest(directory: str, warn) -> Optional[tuple[int, dict]]:
     absl.logging.set_verbosity(absl.logging.ERROR)  # Orbax announces read-only mode as a warning
     try:
         manager = ocp.CheckpointManager(os.path.abspath(directory), options=ocp.CheckpointManagerOptions(
-            read_only=True, create=False, enable_async_checkpointing=False))
+            read_only=True, create=False, enable_async_checkpointing=False),
+            item_handlers=ocp.StandardCheckpointHandler())
         for step in sorted(manager.all_steps(), reverse=True):
             try:
-                return step, jax.tree.map(np.asarray, manager.restore(step, args=ocp.args.StandardRestore()))
+                # Every array onto this process's first device, whatever devices and processes wrote it.
+                metadata = manager.item_metadata(step)
+                local = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+                target = jax.tree.map(lambda m: jax.ShapeDtypeStruct(m.shape, m.dtype, sharding=local),
+                                      getattr(metadata, "tree", metadata))
+                return step, jax.tree.map(np.asarray, manager.restore(step, args=ocp.args.StandardRestore(target)))
             except Exception as err:  # noqa: BLE001 - any failure to read means this checkpoint is unusable
                 warn(f"checkpoint step {step} in {directory} cannot be read ({type(err).__name__}: "
                      f"{str(err)[:300]}); trying the one before")
     finally:
         absl.logging.set_verbosity(verbosity)
     return None
+
+
+def _target(x):
+    """What Orbax restores a leaf of ``like`` into: a device array's shape, dtype and sharding, else NumPy."""
+    if isinstance(x, jax.Array):
+        return jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding)
+    return np.asarray(x)
 
 
 def _check_like(like: dict, got: dict):

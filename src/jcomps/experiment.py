@@ -36,7 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jcomps import continual, envs, grid as grids, methods, progress, results
+from jcomps import continual, distributed, envs, grid as grids, methods, progress, results
 from jcomps.checkpoint import Checkpoints, RunError, record, unflatten  # noqa: F401 - RunError: what run raises
 from jcomps.members import eval_keys, layout, method_keys, num_devices
 from jcomps.numerics import check_field, check_finite_fields
@@ -191,9 +191,10 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
 
 
 def to_host(tree):
-    """``tree``'s arrays as NumPy arrays. An empty array sharded over several devices (e.g. no backward-transfer
-    tasks: [members, tasks, 0]) is made on the host: jax 0.10's ``device_get`` of one fails to assemble it."""
-    return jax.tree.map(lambda x: np.zeros(x.shape, x.dtype) if x.size == 0 else np.asarray(jax.device_get(x)), tree)
+    """``tree``'s arrays as NumPy arrays, on every process (``jcomps.distributed.gather``: with several processes
+    one all-gather). An empty array sharded over several devices (e.g. no backward-transfer tasks:
+    [members, tasks, 0]) is made on the host: jax 0.10's ``device_get`` of one fails to assemble it."""
+    return distributed.gather(tree)
 
 
 class _ProgramRun:
@@ -219,7 +220,7 @@ class _ProgramRun:
         self.hparams = self.program.put(self.hparams_host)
         self.name = self.points[0].key if len(self.points) == 1 else f"{spec.label}, {len(self.points)} grid points"
         self.sequences = self.program.put(self._sequences())
-        self.heldout_tasks = envs.held_out(self.family)
+        self.heldout_tasks = jax.device_get(envs.held_out(self.family))  # host arrays: the same on every process
         self.seed_index = self.program.put(np.arange(len(self.member_seed), dtype=np.int32))
         self.backward_keys = self.program.put(eval_keys(self.member_seed, 1))
         self.init_keys = method_keys(self.member_seed)
@@ -279,7 +280,8 @@ class _ProgramRun:
         self._allocate_metrics()
         if resume:
             states = self._restore(states)
-        if 0 < self.next_chunk < self.num_chunks:  # a run stopped by older code has no partial results yet
+        # A run stopped by older code has no partial results yet.
+        if 0 < self.next_chunk < self.num_chunks and distributed.is_writer():
             for key, raw in self.entry_raws(self.next_chunk).items():
                 results.save_partial(self.out, key, raw)
         self.started = time.time()
@@ -367,7 +369,7 @@ class _ProgramRun:
         ``report.py --partial`` shows)."""
         elapsed = self.elapsed()
         self.checkpoints.save(chunks_done, record(states, self.per_task, self.heldout, chunks_done, elapsed))
-        if chunks_done < self.num_chunks:
+        if chunks_done < self.num_chunks and distributed.is_writer():
             for key, raw in self.entry_raws(chunks_done, elapsed).items():
                 results.save_partial(self.out, key, raw)
 
@@ -402,7 +404,8 @@ class _ProgramRun:
         """Writes every entry's results once the sequence is done; returns them ({entry key: RawResults})."""
         total = self.elapsed()
         raws = self.entry_raws(self.num_chunks, total)
-        for key, raw in raws.items():
-            results.save(self.out, key, raw)
+        if distributed.is_writer():
+            for key, raw in raws.items():
+                results.save(self.out, key, raw)
         self.emit(DONE, seconds=total)
         return raws

@@ -21,7 +21,11 @@ from jcomps import grid as grids
 
 
 def num_devices(seeds: int, available: Optional[int] = None) -> int:
-    """How many devices ``seeds`` seeds are spread over: all available ones, at most one per seed."""
+    """How many devices ``seeds`` seeds (or members) are spread over: all available ones, at most one per seed;
+    with several processes (``jcomps.distributed``) every device of every process, since each process must hold
+    members of the program (fewer members than devices are padded)."""
+    if available is None and jax.process_count() > 1:
+        return jax.device_count()
     return max(1, min(seeds, available or jax.device_count()))
 
 

@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import PartitionSpec as P
 
-from jcomps import compile_cache, continual, envs, grid as grids, methods, progress
+from jcomps import compile_cache, continual, distributed, envs, grid as grids, methods, progress
 
 
 HEARTBEAT_SECONDS = 20.0
@@ -167,7 +167,8 @@ class MethodProgram:
 
     def init(self, rngs, hparams: Optional[dict] = None):
         """The initial states of the members (keys ``rngs``), placed on the devices."""
-        host = jax.device_put(jax.device_get((rngs, hparams or {})), jax.devices()[0])
+        # Every process computes every member's state on its first device and keeps its own members' part.
+        host = jax.device_put(jax.device_get((rngs, hparams or {})), jax.local_devices()[0])
         return self.put(jax.device_get(self._init(*host)))
 
     def learn(self, states, sequences, i, seed_index, hparams: Optional[dict] = None):
@@ -198,8 +199,9 @@ class MethodProgram:
         return self._call("heldout", states, tasks, keys, sequences, learnt, eval_keys, seed_index, hparams or {})
 
     def put(self, tree):
-        """Places host arrays with a leading member axis on the devices, split along that axis."""
-        return jax.device_put(tree, self.sharding)
+        """Places host arrays with a leading member axis on the devices, split along that axis (with several
+        processes, each process its own members: ``jcomps.distributed.put``)."""
+        return distributed.put(tree, self.sharding)
 
 
 class Programs:

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Optional
 
 import jax
 
-from jcomps import continual, grid as grids, methods
+from jcomps import continual, distributed, grid as grids, methods
 from jcomps.checkpoint import RunError
 
 if TYPE_CHECKING:
@@ -43,14 +43,15 @@ def _jsonable(x):
 
 def describe(run: RunConfig, eval_config: continual.EvalConfig, method_configs: dict, grid=(),
              overrides: Optional[dict] = None) -> dict:
-    """The JSON description of a run (``run.json``), with this process's device count: float rounding depends on
-    it, so a resume must use the same count (``experiments/run_sequence.py --resume`` takes it from here). With a
+    """The JSON description of a run (``run.json``), with the device count over every process (float rounding
+    depends on it, so a resume must use the same count: ``experiments/run_sequence.py --resume`` takes it from
+    here) and the process count (``jcomps.distributed``: each process restores its own shards). With a
     hyperparameter grid, ``grid`` holds its axes in order (``jcomps.grid.to_json``); with per-method overrides
     (``--set``), ``overrides`` holds them ({method: {"field.path": value}}, already part of the methods' configs);
     without either there is no such key."""
     out = {"run": _jsonable(run), "eval": _jsonable(eval_config),
            "methods": {name: _jsonable(method_configs[name]) for name in run.methods},
-           "devices": jax.device_count()}
+           "devices": jax.device_count(), "processes": jax.process_count()}
     if grid:
         out["grid"] = grids.to_json(grid)
     if overrides:
@@ -124,27 +125,42 @@ def _check_resumable(out: str, run_json: str, description: dict) -> None:
             filled += _fill_added_fields(stored["methods"][name], config, default, f"methods.{name}.")
     if isinstance(stored.get("eval"), dict) and isinstance(description.get("eval"), dict):
         filled += _fill_added_fields(stored["eval"], description["eval"], _jsonable(continual.EvalConfig()), "eval.")
+    if "processes" not in stored and "processes" in description:  # made before runs spread over processes
+        stored["processes"] = 1
+        filled.append("processes")
     diff = differences(stored, description)
-    diff = [d + f" (float rounding depends on it: resume with --devices {stored['devices']})"
-            if d.startswith("devices:") else d for d in diff]
+    devices, processes = stored.get("devices"), stored.get("processes", 1)
+    per_process = (f"--devices {devices}" if processes == 1 or not isinstance(devices, int) else
+                   f"--devices {devices // processes} on each of {processes} processes")
+    hints = {"devices:": f" (float rounding depends on it: resume with {per_process})",
+             "processes:": f" (each process restores its own members: resume with --num-processes {processes}"
+                           f"{'' if processes != 1 else ', i.e. one process'})"}
+    diff = [d + next((h for k, h in hints.items() if d.startswith(k)), "") for d in diff]
     if diff:
         raise RunError(f"--resume: {out} was made with another config: " + "; ".join(diff[:8]))
-    if filled:  # record them, so that the run's description is whole again
+    if filled and distributed.is_writer():  # record them, so that the run's description is whole again
         write_json(run_json, stored)
 
 
 def open_run_dir(out: str, description: dict, resume: bool) -> None:
     """Creates ``out`` for a new run (its ``run.json``: ``description``), or checks that it holds this very run when
-    resuming; raises ``RunError`` saying what to do when it cannot."""
+    resuming; raises ``RunError`` saying what to do when it cannot. With several processes (``jcomps.distributed``)
+    every process checks, then process 0 writes while the others wait (they read the directory next)."""
     run_json = os.path.join(out, "run.json")
     if resume:
         _check_resumable(out, run_json, description)
+        distributed.barrier("run directory checked")
         return
     if os.path.exists(run_json) or os.path.exists(os.path.join(out, "results.json")):
         raise RunError(f"{out} already holds a run; choose another --out, or add --resume to continue it")
-    try:
-        os.makedirs(out, exist_ok=True)
-        write_json(run_json, description)
-    except OSError as err:
-        raise RunError(f"--out {out}: cannot create the run directory there ({type(err).__name__}: "
-                       f"{err.strerror or err}); choose a writable path") from None
+    distributed.barrier("run directory checked")
+    error = None
+    if distributed.is_writer():
+        try:
+            os.makedirs(out, exist_ok=True)
+            write_json(run_json, description)
+        except OSError as err:
+            error = (f"--out {out}: cannot create the run directory there ({type(err).__name__}: "
+                     f"{err.strerror or err}); choose a writable path")
+    if not distributed.all_agree(error is None, "creating the run directory"):
+        raise RunError(error or f"--out {out}: process 0 could not create the run directory there")
