@@ -1,0 +1,289 @@
+"""Runs spread over several processes (``jcomps.distributed``): options, cluster detection and the progress relay
+in-process; then real runs of two local processes with one CPU device each (``scripts/local_cluster.sh``, and the
+SLURM script under a stand-in ``srun``) against one process with two devices: the same per-task results, array
+for array; a process killed after the first checkpoint, the other stopping by itself and both resumed; the exit
+codes of a missing coordinator and of a resume with another process count. Every process runs under a timeout, so
+a hang fails the test instead of blocking CI.
+
+Float results depend on XLA:CPU's intra-op thread pool size (``NPROC``), which the launcher sets to the pool one
+process with all the devices has (cores + devices); the reference run here gets the same from the environment
+(``conftest``'s ``hostdevices.configure(2)`` set it for the whole session).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from jcomps import distributed, hostdevices
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SCRIPT = os.path.join(ROOT, "experiments", "run_sequence.py")
+LAUNCHER = os.path.join(ROOT, "scripts", "local_cluster.sh")
+SBATCH = os.path.join(ROOT, "scripts", "slurm_study.sbatch")
+TIMEOUT = 240
+"""Seconds any one command of these tests may take (a tiny run takes well under a minute)."""
+
+RUN = ["--methods", "comps", "ppo_tl", "--num-tasks", "2", "--seeds", "2", "--chunk-tasks", "1",
+       "--compile-cache", "none"]
+GRID = ["--methods", "ppo_tl", "--grid", "learning_rate=0.001,0.0003", "--num-tasks", "2", "--seeds", "2",
+        "--chunk-tasks", "2", "--compile-cache", "none"]
+
+
+def _free_port(candidates=(0,)) -> int:
+    """A port free on localhost now (0: any the system picks; else the first of ``candidates`` that binds)."""
+    for port in candidates:
+        with socket.socket() as s:
+            try:
+                s.bind(("localhost", port))
+            except OSError:
+                continue
+            return s.getsockname()[1]
+    raise RuntimeError("no free port")
+
+
+def _env(**extra) -> dict:
+    """The test session's environment (its ``NPROC``: one process with 2 devices), the launcher's Python."""
+    env = dict(os.environ, PYTHON=sys.executable, **extra)
+    env.setdefault("NPROC", str(hostdevices.cores() + 2))
+    return env
+
+
+def _run(cmd: list, **kwargs) -> subprocess.CompletedProcess:
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=TIMEOUT, env=_env(), **kwargs)
+
+
+def _same_results(a, b):
+    """Every array of every results entry of run directories ``a`` and ``b`` equal (wall seconds aside)."""
+    entries = sorted(os.listdir(os.path.join(a, "raw")))
+    assert [e for e in entries if e.endswith(".npz")], f"{a} has no results"
+    assert entries == sorted(os.listdir(os.path.join(b, "raw")))
+    for entry in entries:
+        if not entry.endswith(".npz"):
+            continue
+        with np.load(os.path.join(a, "raw", entry)) as fa, np.load(os.path.join(b, "raw", entry)) as fb:
+            assert fa.files == fb.files
+            for key in fa.files:
+                if key != "seconds":
+                    np.testing.assert_array_equal(fa[key], fb[key], err_msg=f"{entry} {key}")
+
+
+@pytest.fixture(scope="module")
+def reference(tiny_options, tmp_path_factory):
+    """One process with two host devices: the tiny comps + ppo_tl run, and the 2-point grid."""
+    out = tmp_path_factory.mktemp("one_process")
+    for name, args in (("run", RUN), ("grid", GRID)):
+        proc = _run([sys.executable, SCRIPT] + tiny_options + args + ["--devices", "2", "--out", str(out / name)])
+        assert proc.returncode == 0, proc.stderr[-3000:]
+    return out
+
+
+# --- options and detection -------------------------------------------------------------------------------------
+
+def _args(*argv):
+    parser = argparse.ArgumentParser()
+    distributed.add_args(parser)
+    return parser.parse_args(list(argv))
+
+
+def test_settings_from_options_and_cluster_managers():
+    assert distributed.settings(_args(), environ={}) == distributed.Cluster()
+    c = distributed.settings(_args("--coordinator", "node1:1234", "--num-processes", "4", "--process-id", "3",
+                                   "--heartbeat-timeout", "20"), environ={})
+    assert (c.num_processes, c.process_id, c.coordinator, c.heartbeat_timeout, c.distributed) == (4, 3, "node1:1234",
+                                                                                                  20, True)
+    slurm = {"SLURM_JOB_ID": "7", "SLURM_STEP_NUM_TASKS": "8", "SLURM_PROCID": "5", "CUDA_VISIBLE_DEVICES": "2,3"}
+    c = distributed.settings(_args(), environ=slurm)
+    assert (c.detected, c.num_processes, c.process_id, c.coordinator, c.local_device_ids) == ("slurm", 8, 5, None,
+                                                                                              (0, 1))
+    # The batch script itself (no srun step), or a one-task step, is one process.
+    assert distributed.detect({"SLURM_JOB_ID": "7", "SLURM_NTASKS": "8", "SLURM_PROCID": "0"}) is None
+    assert distributed.detect({**slurm, "SLURM_STEP_NUM_TASKS": "1"}) is None
+    assert distributed.detect({"OMPI_COMM_WORLD_SIZE": "2", "OMPI_COMM_WORLD_RANK": "1"}) == ("ompi", 2, 1)
+    assert distributed.local_device_ids({}) is None
+
+
+@pytest.mark.parametrize("argv, message", [
+    (("--coordinator", "h:1", "--num-processes", "2"), "--process-id missing"),
+    (("--num-processes", "2", "--process-id", "0"), "--coordinator missing"),
+    (("--coordinator", "h", "--num-processes", "2", "--process-id", "0"), "--coordinator must be HOST:PORT"),
+    (("--coordinator", "h:99999", "--num-processes", "2", "--process-id", "0"), "a port 1 to 65535"),
+    (("--coordinator", "h:1", "--num-processes", "2", "--process-id", "2"), r"--process-id must be in \[0, 1\]"),
+    (("--coordinator", "h:1", "--num-processes", "0", "--process-id", "0"), "--num-processes must be >= 1"),
+    (("--heartbeat-timeout", "0",), "--heartbeat-timeout must be"),
+])
+def test_settings_reject_bad_options(argv, message):
+    with pytest.raises(ValueError, match=message):
+        distributed.settings(_args(*argv), environ={})
+
+
+class _Store:
+    """The key-value store of JAX's distributed client, in memory."""
+
+    def __init__(self):
+        self.values = {}
+
+    def key_value_set(self, key, value, allow_overwrite=False):
+        assert allow_overwrite or key not in self.values
+        self.values[key] = value
+
+    def key_value_try_get(self, key):
+        if key not in self.values:
+            raise KeyError(key)
+        return self.values[key]
+
+
+def test_relay_hands_every_members_progress_to_process_zero(monkeypatch):
+    monkeypatch.setattr(distributed, "_process_index", lambda: 1)
+    store, shown = _Store(), []
+    relay = distributed.Relay(interval=3600, client=store)
+    merger = distributed.Merger(shown.append, num_processes=2, interval=3600, client=store)
+    merger({"event": "start", "program": "p"})  # process 0's own events pass straight through
+    relay({"event": "start", "program": "p"})  # process 0 has the runner's events: not relayed
+    for i in range(3):
+        relay({"event": "iteration", "program": "p", "member": 1, "task": 0, "iteration": i})
+    relay({"event": "heldout_iteration", "program": "p", "member": 1, "heldout_task": 2, "heldout_iteration": 4})
+    merger.poll()  # nothing published yet
+    relay.publish()
+    merger.poll()
+    merger.poll()  # each event once
+    assert [(e["event"], e.get("iteration")) for e in shown] == [("start", None), ("iteration", 2),
+                                                               ("heldout_iteration", None)]
+    relay({"event": "iteration", "program": "p", "member": 1, "task": 0, "iteration": 3})
+    relay.close()
+    merger.close()
+    assert shown[-1] == {"event": "iteration", "program": "p", "member": 1, "task": 0, "iteration": 3}
+
+
+# --- real runs of two processes --------------------------------------------------------------------------------
+
+def test_two_processes_give_the_results_of_one_with_two_devices(reference, tiny_options, tmp_path):
+    """comps and ppo_tl through the README's launcher: process 0 writes the run directory and prints."""
+    out = tmp_path / "two"
+    proc = _run(["bash", LAUNCHER, "2", "--"] + tiny_options + RUN + ["--out", str(out)])
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    _same_results(reference / "run", out)
+    stored, ref = (json.loads((d / "run.json").read_text()) for d in (out, reference / "run"))
+    assert stored.pop("processes") == 2 and ref.pop("processes") == 1
+    assert stored == ref  # devices 2 in both
+    assert "process 0 of 2: 1 of 2 devices" in proc.stdout and "process 1 of 2: 1 of 2 devices" in proc.stdout
+    assert proc.stdout.count("mean iterations-to-success per task") == 1  # the report: process 0 alone
+    assert (out / "results.json").exists() and (out / "significance.md").exists()
+
+
+def test_grid_under_slurm(reference, tiny_options, tmp_path):
+    """The 2-point grid through scripts/slurm_study.sbatch, with a stand-in srun that starts the tasks here with
+    the variables SLURM sets (JAX's SLURM detection finds the coordinator; no distributed options are given)."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    (bin_dir / "srun").write_text(
+        "#!/bin/bash\n"
+        "while [[ \"$1\" == --* ]]; do shift; done\n"
+        "pids=()\n"
+        "for ((i = 0; i < SLURM_NTASKS; i++)); do\n"
+        "  SLURM_STEP_NUM_TASKS=$SLURM_NTASKS SLURM_PROCID=$i SLURM_LOCALID=$i SLURM_STEP_NODELIST=localhost "
+        "\"$@\" &\n"
+        "  pids+=($!)\n"
+        "done\n"
+        "rc=0\n"
+        "for p in \"${pids[@]}\"; do wait $p || rc=$?; done\n"
+        "exit $rc\n")
+    (bin_dir / "srun").chmod(0o755)
+    port = _free_port(range(61440, 65536))  # JAX takes the coordinator's port from the job id: 61440 + id % 4096
+    env = _env(PATH=f"{bin_dir}:{os.environ['PATH']}", SLURM_JOB_ID=str(port - 61440), SLURM_NTASKS="2",
+               SLURM_JOB_NODELIST="localhost", SLURM_SUBMIT_DIR=ROOT)
+    out = tmp_path / "grid"
+    proc = subprocess.run(["bash", SBATCH] + tiny_options + GRID + ["--devices", "1", "--out", str(out)],
+                          capture_output=True, text=True, timeout=TIMEOUT, env=env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "process 1 of 2 (slurm)" in proc.stdout
+    _same_results(reference / "grid", out)
+
+
+def _start(args, process_id: int, port: int) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, SCRIPT] + args + ["--coordinator", f"localhost:{port}",
+                                                               "--num-processes", "2", "--process-id",
+                                                               str(process_id), "--heartbeat-timeout", "30"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
+
+
+def test_killed_process_stops_the_other_and_both_resume(reference, tiny_options, tmp_path):
+    """Process 1 killed once the first checkpoint is complete: process 0 stops by itself (exit code 3, saying what
+    to do) instead of hanging; both resumed equal the uninterrupted run. Then a resume as one process is refused."""
+    out = tmp_path / "killed"
+    args = tiny_options + ["--methods", "ppo_tl"] + RUN[3:] + ["--devices", "1", "--out", str(out)]
+    port = _free_port()
+    procs = [_start(args, i, port) for i in (0, 1)]
+    try:
+        step = out / "checkpoints" / "ppo_tl" / "1"
+        deadline = time.time() + TIMEOUT
+        while not step.is_dir():
+            assert time.time() < deadline and procs[0].poll() is None, "no first checkpoint"
+            time.sleep(0.05)
+        procs[1].send_signal(signal.SIGKILL)
+        killed = time.time()
+        _, err = procs[0].communicate(timeout=90)
+        stopped = time.time() - killed
+    finally:
+        for p in procs:
+            p.kill()
+            p.wait()
+    assert procs[0].returncode == distributed.EXIT_PEER_LOST, err[-3000:]
+    assert "lost the other processes" in err and "with --resume" in err
+    assert stopped < 60, f"process 0 took {stopped:.0f} s to stop"
+    assert not (out / "raw" / "ppo_tl.npz").exists()
+
+    port = _free_port()
+    resumed = [_start(["--out", str(out), "--resume", "--compile-cache", "none"], i, port) for i in (0, 1)]
+    outputs = [p.communicate(timeout=TIMEOUT) for p in resumed]
+    for p, (_, err) in zip(resumed, outputs):
+        assert p.returncode == 0, err[-3000:]
+    assert "resumed" in outputs[0][0]
+    with np.load(reference / "run" / "raw" / "ppo_tl.npz") as fa, np.load(out / "raw" / "ppo_tl.npz") as fb:
+        for key in fa.files:
+            if key != "seconds":
+                np.testing.assert_array_equal(fa[key], fb[key], err_msg=key)
+
+    proc = _run([sys.executable, SCRIPT, "--out", str(out), "--resume"])
+    assert proc.returncode == 2
+    assert "processes: run has 2, asked 1 (each process restores its own members: resume with --num-processes 2)" \
+        in proc.stderr
+
+
+def test_unreachable_coordinator_exits_2_naming_it():
+    port = _free_port()
+    began = time.time()
+    proc = _run([sys.executable, SCRIPT, "--coordinator", f"localhost:{port}", "--num-processes", "2",
+                 "--process-id", "1", "--coordinator-timeout", "2", "--out", "unused"])
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert f"coordinator at localhost:{port} within --coordinator-timeout 2 s" in proc.stderr
+    assert time.time() - began < 60
+
+
+def test_bad_distributed_option_exits_2():
+    proc = _run([sys.executable, SCRIPT, "--coordinator", "localhost", "--num-processes", "2", "--process-id", "0"])
+    assert proc.returncode == 2
+    assert "--coordinator must be HOST:PORT" in proc.stderr
+
+
+def test_tools_that_read_runs_work_on_process_zero_alone(merge_runs, tmp_path, capsys):
+    """report.py, merge_runs.py and render.py started as several processes: process 0 does the work (it needs no
+    runtime), the others say so and leave the directory alone."""
+    merge_runs.main([str(tmp_path / "merged"), str(tmp_path / "a"), "--coordinator", "localhost:1",
+                     "--num-processes", "2", "--process-id", "1"])
+    out = capsys.readouterr().out
+    assert "process 1 of 2:" in out and "runs on process 0 only" in out
+    assert not (tmp_path / "merged").exists()
+    with pytest.raises(SystemExit) as exit_info:  # bad options are refused as everywhere
+        merge_runs.main([str(tmp_path / "merged"), str(tmp_path / "a"), "--process-id", "1"])
+    assert exit_info.value.code == 2
+    assert "--coordinator, --num-processes missing" in capsys.readouterr().err
