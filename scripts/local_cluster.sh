@@ -1,18 +1,19 @@
 #!/usr/bin/env bash
 # One jcomps run as N processes on this machine: JAX's multi-controller runtime over localhost, the way it runs
-# over the hosts of a cluster (docs: README "Running on a cluster"). Each process gets one CPU device and its
-# share of the cores (or one GPU of several, or a share of one GPU); the members (seeds x grid points) are spread
-# over all of them, and process 0 writes the run directory and prints.
+# over the hosts of a cluster (docs: README "Running on a cluster"). Each process gets one CPU device (or one GPU
+# of several, or a share of one GPU) and a share of the cores for MetaWorld's stepping workers; the members
+# (seeds x grid points) are spread over all of them, and process 0 writes the run directory and prints.
 #
 #   scripts/local_cluster.sh 2 -- --family point_goal --seeds 4 --out runs/two      # run_sequence.py's options
 #   scripts/local_cluster.sh 2 -- --out runs/two --resume                           # continue after a failure
 #   scripts/local_cluster.sh 2 -- experiments/report.py runs/two                    # another script of ours
 #
-# Environment: PYTHON (default: the repository's .venv/bin/python, else python), JCOMPS_PORT (the coordinator's port; default: a free one), NPROC
-# (XLA:CPU's thread pool per process; default: cores + N, the pool one process with N devices would have, since
-# float rounding depends on it: a run of N processes then gives exactly the results of one process with
-# N devices). Exit code: the first non-zero exit code of a process, else 0. If a process dies, the others stop
-# by themselves (exit code 3, at their next exchange, or within --heartbeat-timeout seconds).
+# Environment: PYTHON (default: the repository's .venv/bin/python, else python); JCOMPS_PORT (the coordinator's
+# port; default: a free one); NPROC (XLA:CPU's thread pool per process; default: cores + N, the pool one process
+# with N devices has, since float rounding depends on it: N processes then give exactly the results of one
+# process with N devices); JCOMPS_METAWORLD_WORKERS (default: cores / N, rounded up). Exit code: the first
+# non-zero exit code of a process, else 0. If a process dies, the others stop by themselves (exit code 3, at
+# their next exchange, or within --heartbeat-timeout seconds).
 set -euo pipefail
 
 usage() {
@@ -40,9 +41,11 @@ if [[ "$script" == */run_sequence.py ]] && ! printf '%s\n' "$@" | grep -qE '^--d
 fi
 
 port=${JCOMPS_PORT:-$("$PYTHON" -c 'import socket; s = socket.socket(); s.bind(("localhost", 0)); print(s.getsockname()[1])')}
-mapfile -t cpus < <("$PYTHON" -c 'import os; print("\n".join(map(str, sorted(os.sched_getaffinity(0)))))')
-cores=${#cpus[@]}
+cores=$("$PYTHON" -c 'import os; print(len(os.sched_getaffinity(0)))')
 export NPROC=${NPROC:-$((cores + N))}
+# MetaWorld's stepping workers: each process its share of the cores (the processes are not pinned to cores: XLA
+# spreads a device's program over more than one core, and pinning cost Point Goal's chunk program 9%).
+export JCOMPS_METAWORLD_WORKERS=${JCOMPS_METAWORLD_WORKERS:-$(((cores + N - 1) / N))}
 gpus=0
 if command -v nvidia-smi >/dev/null 2>&1; then
   gpus=$(nvidia-smi -L 2>/dev/null | grep -c '^GPU' || true)
@@ -51,18 +54,13 @@ fi
 pids=()
 trap 'kill "${pids[@]}" 2>/dev/null || true' INT TERM
 for ((i = 0; i < N; i++)); do
-  pin=()
-  if ((N <= cores)) && command -v taskset >/dev/null 2>&1; then  # process i: cores i*C/N .. (i+1)*C/N - 1
-    mine=$(IFS=,; echo "${cpus[*]:$((i * cores / N)):$(((i + 1) * cores / N - i * cores / N))}")
-    pin=(taskset -c "$mine")
-  fi
   (
     if ((gpus >= N)); then
       export CUDA_VISIBLE_DEVICES=$i  # one GPU per process
     elif ((gpus > 0)); then
       export XLA_PYTHON_CLIENT_PREALLOCATE=false  # processes share the GPUs: allocate as needed
     fi
-    exec "${pin[@]}" "$PYTHON" "$script" "$@" "${extra[@]}" --coordinator "localhost:$port" --num-processes "$N" \
+    exec "$PYTHON" "$script" "$@" "${extra[@]}" --coordinator "localhost:$port" --num-processes "$N" \
       --process-id "$i"
   ) &
   pids+=($!)
