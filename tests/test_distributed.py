@@ -164,6 +164,37 @@ def test_relay_hands_every_members_progress_to_process_zero(monkeypatch):
     assert shown[-1] == {"event": "iteration", "program": "p", "member": 1, "task": 0, "iteration": 3}
 
 
+_RELAY_CHILD = r"""
+import sys, time
+from jcomps import distributed, hostdevices
+hostdevices.configure(1)
+pid, port = int(sys.argv[1]), sys.argv[2]
+distributed.start(distributed.Cluster(2, pid, f"localhost:{port}", coordinator_timeout=60, heartbeat_timeout=30))
+shown = []
+receiver = distributed.progress_receiver(shown.append, interval=0.2)
+if pid == 1:
+    for i in range(5):
+        receiver({"event": "iteration", "program": "p", "member": 3, "task": 0, "iteration": i})
+    receiver.close()  # publishes what is left
+distributed.barrier("published")
+if pid == 0:
+    receiver.close()
+    print("SHOWN", shown, flush=True)
+distributed.barrier("done")
+"""
+
+
+def test_relay_through_the_runtime():
+    """The relay over JAX's own key-value store, between two real processes: process 0 shows process 1's members."""
+    port = _free_port()
+    procs = [subprocess.Popen([sys.executable, "-c", _RELAY_CHILD, str(i), str(port)], stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True, env=_env()) for i in (0, 1)]
+    outputs = [p.communicate(timeout=TIMEOUT) for p in procs]
+    for p, (_, err) in zip(procs, outputs):
+        assert p.returncode == 0, err[-3000:]
+    assert "SHOWN [{'event': 'iteration', 'program': 'p', 'member': 3, 'task': 0, 'iteration': 4}]" in outputs[0][0]
+
+
 # --- real runs of two processes --------------------------------------------------------------------------------
 
 def test_two_processes_give_the_results_of_one_with_two_devices(reference, tiny_options, tmp_path):

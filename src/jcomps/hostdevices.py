@@ -14,6 +14,11 @@ after another; initialisation runs seed by seed, unbatched, where the kernel run
 many independent batched LAPACK calls at once can still use up the pool. (jaxlib 0.11 reportedly builds this
 parallel path out; we pin 0.10.2.)
 
+The pool's size also moves float rounding: XLA:CPU's results differ in the last bits between ``NPROC=3`` and
+``NPROC=4`` (seen on a PPO run). Runs are bit-for-bit reproducible for the same devices *and* pool; several
+processes on one machine (``scripts/local_cluster.sh``) each get the pool one process with all the devices has
+(``NPROC`` set by the launcher), so that they give that process's results exactly.
+
 >>> from jcomps import hostdevices
 >>> hostdevices.configure(2)      # before the first ``import jax`` in the process
 >>> import jax; jax.device_count()
