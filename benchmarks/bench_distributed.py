@@ -3,7 +3,7 @@
 same members, in one run of this script.
 
 Each case compiles the chunk program (``learn`` then ``evaluate_task`` for every task of a chunk; for several
-processes also the gathering of its metrics to every process, as the runner does after every task), runs one
+processes also the gathering of its metrics to every process, as the runner does after every chunk), runs one
 chunk to warm up, then times it ``--repeats`` times and counts the env steps (iterations × trajectories × T_max,
 summed over members and tasks). Both cases compute the same numbers (the launcher gives every process the thread
 pool of one process with N devices), so the work is identical. A third case runs N independent processes of

@@ -57,7 +57,8 @@ def merged_description(descriptions: list) -> dict:
     if len(set(chunks.values())) > 1:
         out["run"]["chunk_tasks_by_method"] = chunks
     out.pop("overrides", None)
-    out.pop("processes", None)  # how the sources were spread; the merged directory is not resumed
+    if len({desc.get("processes", 1) for _, desc in descriptions}) > 1:
+        out.pop("processes", None)  # the sources were spread differently; the merged directory is not resumed
     if overrides:
         out["overrides"] = overrides
     return out

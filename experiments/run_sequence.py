@@ -220,13 +220,12 @@ def main(argv=None):
               flush=True)
     if cluster.distributed:
         _say_processes(cluster, writer)
-    receiver = None
     try:
         console = Console(lambda line: print(line, flush=True), args.out, args.tensorboard) if writer else None
         receiver = distributed.progress_receiver(console)
         experiment.run(args.out, args.run, args.eval, args.configs, resume=args.resume, progress_fn=receiver,
                        grid=args.grid, overrides=args.overrides, programs=PROGRAMS)
-        _close(receiver)
+        distributed.close_receiver(receiver)
         if not writer:  # process 0 writes the report and prints the results
             return
         results = report.write(args.out, baseline=args.baseline)
@@ -263,11 +262,6 @@ def _say_processes(cluster, writer: bool) -> None:
           (f" ({cluster.detected})" if cluster.detected else "") + f": {jax.local_device_count()} of "
           f"{jax.device_count()} devices; " + ("writes the run directory and shows every process's progress"
                                                if writer else "its progress goes to process 0"), flush=True)
-
-
-def _close(receiver) -> None:
-    if hasattr(receiver, "close"):
-        receiver.close()
 
 
 if __name__ == "__main__":

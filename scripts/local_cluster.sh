@@ -9,9 +9,9 @@
 #   scripts/local_cluster.sh 2 -- experiments/report.py runs/two                    # another script of ours
 #
 # Environment: PYTHON (default: the repository's .venv/bin/python, else python); JCOMPS_PORT (the coordinator's
-# port; default: a free one); NPROC (XLA:CPU's thread pool per process; default: cores + N, the pool one process
-# with N devices has, since float rounding depends on it: N processes then give exactly the results of one
-# process with N devices); JCOMPS_METAWORLD_WORKERS (default: cores / N, rounded up). Exit code: the first
+# port; default: a free one); NPROC (XLA:CPU's thread pool per process; default: cores + all the processes'
+# devices, the pool one process with all of them has, since float rounding depends on it: N processes then give
+# exactly the results of one process with all their devices; the launcher says N through JCOMPS_LOCAL_PROCESSES); JCOMPS_METAWORLD_WORKERS (default: cores / N, rounded up). Exit code: the first
 # non-zero exit code of a process, else 0. If a process dies, the others stop by themselves (exit code 3, at
 # their next exchange, or within --heartbeat-timeout seconds).
 set -euo pipefail
@@ -35,14 +35,17 @@ if [[ "${1:-}" == *.py ]]; then
   script=$1
   shift
 fi
+# One CPU device per process (on a GPU machine the GPUs are used instead), unless --devices is given or a run is
+# resumed (it takes the count it was made with).
 extra=()
-if [[ "$script" == */run_sequence.py ]] && ! printf '%s\n' "$@" | grep -qE '^--devices(=|$)'; then
-  extra=(--devices 1)  # one CPU device per process (on a GPU machine the GPUs are used instead)
+if [[ "$script" == */run_sequence.py ]] && ! printf '%s\n' "$@" | grep -qE -- '^--(devices|resume)(=|$)'; then
+  extra=(--devices 1)
 fi
 
 port=${JCOMPS_PORT:-$("$PYTHON" -c 'import socket; s = socket.socket(); s.bind(("localhost", 0)); print(s.getsockname()[1])')}
-cores=$("$PYTHON" -c 'import os; print(len(os.sched_getaffinity(0)))')
-export NPROC=${NPROC:-$((cores + N))}
+cores=$("$PYTHON" -c 'from jcomps import hostdevices; print(hostdevices.cores())')
+# Each process sizes XLA:CPU's thread pool as one process with all N processes' devices would (jcomps.hostdevices).
+export JCOMPS_LOCAL_PROCESSES=$N
 # MetaWorld's stepping workers: each process its share of the cores (the processes are not pinned to cores: XLA
 # spreads a device's program over more than one core, and pinning cost Point Goal's chunk program 9%).
 export JCOMPS_METAWORLD_WORKERS=${JCOMPS_METAWORLD_WORKERS:-$(((cores + N - 1) / N))}
@@ -55,12 +58,13 @@ pids=()
 trap 'kill "${pids[@]}" 2>/dev/null || true' INT TERM
 for ((i = 0; i < N; i++)); do
   (
-    if ((gpus >= N)); then
-      export CUDA_VISIBLE_DEVICES=$i  # one GPU per process
-    elif ((gpus > 0)); then
-      export XLA_PYTHON_CLIENT_PREALLOCATE=false  # processes share the GPUs: allocate as needed
+    if ((gpus >= N)); then  # one GPU per process: the i-th of those visible
+      IFS=, read -r -a visible <<< "${CUDA_VISIBLE_DEVICES:-$(seq -s, 0 $((gpus - 1)))}"
+      export CUDA_VISIBLE_DEVICES=${visible[$i]}
+    elif ((gpus > 0)); then  # processes share the GPUs, allocating as they need (untested: NCCL may refuse)
+      export XLA_PYTHON_CLIENT_PREALLOCATE=false
     fi
-    exec "$PYTHON" "$script" "$@" "${extra[@]}" --coordinator "localhost:$port" --num-processes "$N" \
+    exec "$PYTHON" "$script" "$@" ${extra[@]+"${extra[@]}"} --coordinator "localhost:$port" --num-processes "$N" \
       --process-id "$i"
   ) &
   pids+=($!)

@@ -5,9 +5,9 @@ for array; a process killed after the first checkpoint, the other stopping by it
 codes of a missing coordinator and of a resume with another process count. Every process runs under a timeout, so
 a hang fails the test instead of blocking CI.
 
-Float results depend on XLA:CPU's intra-op thread pool size (``NPROC``), which the launcher sets to the pool one
-process with all the devices has (cores + devices); the reference run here gets the same from the environment
-(``conftest``'s ``hostdevices.configure(2)`` set it for the whole session).
+Float results depend on XLA:CPU's intra-op thread pool size (``NPROC``): every process here sizes its own
+(``jcomps.hostdevices``), the reference with its 2 devices, the processes of a run as one process with all their
+devices (``JCOMPS_LOCAL_PROCESSES``, which the launcher sets).
 """
 
 from __future__ import annotations
@@ -33,10 +33,9 @@ SBATCH = os.path.join(ROOT, "scripts", "slurm_study.sbatch")
 TIMEOUT = 240
 """Seconds any one command of these tests may take (a tiny run takes well under a minute)."""
 
-RUN = ["--methods", "comps", "ppo_tl", "--num-tasks", "2", "--seeds", "2", "--chunk-tasks", "1",
-       "--compile-cache", "none"]
 GRID = ["--methods", "ppo_tl", "--grid", "learning_rate=0.001,0.0003", "--num-tasks", "2", "--seeds", "2",
-        "--chunk-tasks", "2", "--compile-cache", "none"]
+        "--chunk-tasks", "2"]
+"""The 2-point grid run; the comps and ppo_tl run is ``conftest``'s ``full_run`` (3 tasks, 2 seeds, chunks of 1)."""
 
 
 def _free_port(candidates=(0,)) -> int:
@@ -52,14 +51,38 @@ def _free_port(candidates=(0,)) -> int:
 
 
 def _env(**extra) -> dict:
-    """The test session's environment (its ``NPROC``: one process with 2 devices), the launcher's Python."""
+    """The test session's environment without its thread pool size (each process sizes its own), the launcher's
+    Python."""
     env = dict(os.environ, PYTHON=sys.executable, **extra)
-    env.setdefault("NPROC", str(hostdevices.cores() + 2))
+    env.pop("NPROC", None)
     return env
 
 
-def _run(cmd: list, **kwargs) -> subprocess.CompletedProcess:
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=TIMEOUT, env=_env(), **kwargs)
+def _group(cmd: list, env: dict | None = None) -> subprocess.Popen:
+    """``cmd`` started in a process group of its own (a launcher's processes die with it on a timeout)."""
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            env=_env() if env is None else env)
+
+
+def _finish(procs: list, timeout: float = TIMEOUT) -> list:
+    """Every process's (stdout, stderr); a process group still there after ``timeout`` is killed, whole."""
+    try:
+        return [p.communicate(timeout=timeout) for p in procs]
+    finally:
+        _kill(procs)
+
+
+def _kill(procs: list):
+    for p in procs:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+
+
+def _run(cmd: list, env: dict | None = None) -> subprocess.CompletedProcess:
+    p = _group(cmd, env)
+    (out, err), = _finish([p])
+    return subprocess.CompletedProcess(cmd, p.returncode, out, err)
 
 
 def _same_results(a, b):
@@ -78,13 +101,9 @@ def _same_results(a, b):
 
 
 @pytest.fixture(scope="module")
-def reference(tiny_options, tmp_path_factory):
-    """One process with two host devices: the tiny comps + ppo_tl run, and the 2-point grid."""
-    out = tmp_path_factory.mktemp("one_process")
-    for name, args in (("run", RUN), ("grid", GRID)):
-        proc = _run([sys.executable, SCRIPT] + tiny_options + args + ["--devices", "2", "--out", str(out / name)])
-        assert proc.returncode == 0, proc.stderr[-3000:]
-    return out
+def grid_reference(tiny_run, tiny_options):
+    """The 2-point grid in this process (two host devices, the session's thread pool: cores + 2)."""
+    return tiny_run(tiny_options + GRID, "one_process_grid")
 
 
 # --- options and detection -------------------------------------------------------------------------------------
@@ -124,6 +143,47 @@ def test_settings_from_options_and_cluster_managers():
 def test_settings_reject_bad_options(argv, message):
     with pytest.raises(ValueError, match=message):
         distributed.settings(_args(*argv), environ={})
+
+
+def test_thread_pool_of_processes_sharing_a_machine():
+    """Several processes of a run on one machine size XLA:CPU's pool as one process with all their devices (float
+    rounding depends on it); a pool the user set is kept; a bad count is refused naming the variable."""
+    cores = hostdevices.cores()
+    assert hostdevices.environment(2, {})["NPROC"] == str(cores + 2)
+    assert hostdevices.environment(1, {hostdevices.LOCAL_PROCESSES: "2"})["NPROC"] == str(cores + 2)
+    assert hostdevices.environment(1, {hostdevices.LOCAL_PROCESSES: "2", "NPROC": "7"})["NPROC"] == "7"
+    with pytest.raises(ValueError, match="JCOMPS_LOCAL_PROCESSES must be an integer >= 1"):
+        hostdevices.environment(1, {hostdevices.LOCAL_PROCESSES: "0"})
+
+
+def test_old_numpy_checkpoints_restore_into_sharded_states(tmp_path):
+    """Checkpoints written before runs spread over processes held the states as NumPy arrays; they restore into
+    the sharded states a run now saves and restores."""
+    import jax
+    from jax.sharding import NamedSharding, PartitionSpec
+
+    from jcomps import checkpoint
+
+    old = {"states": {"00000": np.arange(8, dtype=np.float32).reshape(2, 4)}, "per_task": {"00000": np.ones(3)},
+           "heldout": {"00000": np.ones(2)}, "counters": {"next_chunk": np.int64(1), "seconds": np.float64(2.5)}}
+    checkpoint.Checkpoints(str(tmp_path / "c")).save(1, old)
+    mesh = jax.make_mesh((2,), ("seed",), devices=jax.devices()[:2])
+    states = jax.device_put(np.zeros((2, 4), np.float32), NamedSharding(mesh, PartitionSpec("seed")))
+    like = checkpoint.record({"w": states}, np.zeros(3), np.zeros(2), 0, 0.0)
+    step, tree = checkpoint.Checkpoints(str(tmp_path / "c")).restore_latest(like, warn=pytest.fail)
+    assert step == 1 and tree["states"]["00000"].sharding == states.sharding
+    np.testing.assert_array_equal(np.asarray(tree["states"]["00000"]), old["states"]["00000"])
+    assert int(tree["counters"]["next_chunk"]) == 1 and float(tree["counters"]["seconds"]) == 2.5
+
+
+def test_runtime_failures_are_told_from_local_errors():
+    import jax
+
+    assert distributed.runtime_failure(ValueError("UNKNOWN: Gloo AllGather failed: [pair.cc:538] Read error "
+                                                  "[127.0.0.1]:4524: Connection reset by peer"))
+    assert distributed.runtime_failure(jax.errors.JaxRuntimeError("DEADLINE_EXCEEDED: barrier timed out"))
+    assert not distributed.runtime_failure(OSError(28, "No space left on device"))
+    assert not distributed.runtime_failure(AssertionError("sync_global_devices name mismatch ('a')"))
 
 
 class _Store:
@@ -187,9 +247,8 @@ distributed.barrier("done")
 def test_relay_through_the_runtime():
     """The relay over JAX's own key-value store, between two real processes: process 0 shows process 1's members."""
     port = _free_port()
-    procs = [subprocess.Popen([sys.executable, "-c", _RELAY_CHILD, str(i), str(port)], stdout=subprocess.PIPE,
-                              stderr=subprocess.PIPE, text=True, env=_env()) for i in (0, 1)]
-    outputs = [p.communicate(timeout=TIMEOUT) for p in procs]
+    procs = [_group([sys.executable, "-c", _RELAY_CHILD, str(i), str(port)]) for i in (0, 1)]
+    outputs = _finish(procs)
     for p, (_, err) in zip(procs, outputs):
         assert p.returncode == 0, err[-3000:]
     assert "SHOWN [{'event': 'iteration', 'program': 'p', 'member': 3, 'task': 0, 'iteration': 4}]" in outputs[0][0]
@@ -197,21 +256,7 @@ def test_relay_through_the_runtime():
 
 # --- real runs of two processes --------------------------------------------------------------------------------
 
-def test_two_processes_give_the_results_of_one_with_two_devices(reference, tiny_options, tmp_path):
-    """comps and ppo_tl through the README's launcher: process 0 writes the run directory and prints."""
-    out = tmp_path / "two"
-    proc = _run(["bash", LAUNCHER, "2", "--"] + tiny_options + RUN + ["--out", str(out)])
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    _same_results(reference / "run", out)
-    stored, ref = (json.loads((d / "run.json").read_text()) for d in (out, reference / "run"))
-    assert stored.pop("processes") == 2 and ref.pop("processes") == 1
-    assert stored == ref  # devices 2 in both
-    assert "process 0 of 2: 1 of 2 devices" in proc.stdout and "process 1 of 2: 1 of 2 devices" in proc.stdout
-    assert proc.stdout.count("mean iterations-to-success per task") == 1  # the report: process 0 alone
-    assert (out / "results.json").exists() and (out / "significance.md").exists()
-
-
-def test_grid_under_slurm(reference, tiny_options, tmp_path):
+def test_grid_under_slurm(grid_reference, tiny_options, tmp_path):
     """The 2-point grid through scripts/slurm_study.sbatch, with a stand-in srun that starts the tasks here with
     the variables SLURM sets (JAX's SLURM detection finds the coordinator; no distributed options are given)."""
     bin_dir = tmp_path / "bin"
@@ -230,59 +275,57 @@ def test_grid_under_slurm(reference, tiny_options, tmp_path):
         "exit $rc\n")
     (bin_dir / "srun").chmod(0o755)
     port = _free_port(range(61440, 65536))  # JAX takes the coordinator's port from the job id: 61440 + id % 4096
+    # Both tasks share this machine, as the launcher's processes do (on a cluster each node has its own cores).
     env = _env(PATH=f"{bin_dir}:{os.environ['PATH']}", SLURM_JOB_ID=str(port - 61440), SLURM_NTASKS="2",
-               SLURM_JOB_NODELIST="localhost", SLURM_SUBMIT_DIR=ROOT)
+               SLURM_JOB_NODELIST="localhost", SLURM_SUBMIT_DIR=ROOT, JCOMPS_LOCAL_PROCESSES="2")
     out = tmp_path / "grid"
-    proc = subprocess.run(["bash", SBATCH] + tiny_options + GRID + ["--devices", "1", "--out", str(out)],
-                          capture_output=True, text=True, timeout=TIMEOUT, env=env)
+    proc = _run(["bash", SBATCH] + tiny_options + GRID + ["--devices", "1", "--out", str(out)], env)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "process 1 of 2 (slurm)" in proc.stdout
-    _same_results(reference / "grid", out)
+    _same_results(grid_reference, out)
 
 
 def _start(args, process_id: int, port: int) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, SCRIPT] + args + ["--coordinator", f"localhost:{port}",
-                                                               "--num-processes", "2", "--process-id",
-                                                               str(process_id), "--heartbeat-timeout", "30"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
+    """Process ``process_id`` of a run of two on this machine."""
+    return _group([sys.executable, SCRIPT] + args + ["--coordinator", f"localhost:{port}", "--num-processes", "2",
+                                                     "--process-id", str(process_id), "--heartbeat-timeout", "30"],
+                  _env(JCOMPS_LOCAL_PROCESSES="2"))
 
 
-def test_killed_process_stops_the_other_and_both_resume(reference, tiny_options, tmp_path):
-    """Process 1 killed once the first checkpoint is complete: process 0 stops by itself (exit code 3, saying what
-    to do) instead of hanging; both resumed equal the uninterrupted run. Then a resume as one process is refused."""
-    out = tmp_path / "killed"
-    args = tiny_options + ["--methods", "ppo_tl"] + RUN[3:] + ["--devices", "1", "--out", str(out)]
+def test_two_processes_killed_and_resumed_give_the_results_of_one(full_run, full_run_argv, tmp_path):
+    """comps and ppo_tl as two processes with one device each: process 1 killed once comps's first checkpoint is
+    complete; process 0 stops by itself (exit code 3, saying what to do) instead of hanging; both resumed through
+    the README's launcher, they finish with every per-task result of one process with two devices (``full_run``),
+    array for array. Process 0 alone writes the report. Then a resume as one process is refused."""
+    out = tmp_path / "two"
     port = _free_port()
-    procs = [_start(args, i, port) for i in (0, 1)]
+    procs = [_start(full_run_argv + ["--devices", "1", "--out", str(out)], i, port) for i in (0, 1)]
     try:
-        step = out / "checkpoints" / "ppo_tl" / "1"
+        step = out / "checkpoints" / "comps" / "1"
         deadline = time.time() + TIMEOUT
         while not step.is_dir():
             assert time.time() < deadline and procs[0].poll() is None, "no first checkpoint"
             time.sleep(0.05)
         procs[1].send_signal(signal.SIGKILL)
         killed = time.time()
-        _, err = procs[0].communicate(timeout=90)
+        (out0, err), = _finish(procs[:1], timeout=90)
         stopped = time.time() - killed
     finally:
-        for p in procs:
-            p.kill()
-            p.wait()
+        _kill(procs)
     assert procs[0].returncode == distributed.EXIT_PEER_LOST, err[-3000:]
     assert "lost the other processes" in err and "with --resume" in err
     assert stopped < 60, f"process 0 took {stopped:.0f} s to stop"
-    assert not (out / "raw" / "ppo_tl.npz").exists()
+    assert "process 0 of 2: 1 of 2 devices" in out0 and not (out / "raw" / "comps.npz").exists()
 
-    port = _free_port()
-    resumed = [_start(["--out", str(out), "--resume", "--compile-cache", "none"], i, port) for i in (0, 1)]
-    outputs = [p.communicate(timeout=TIMEOUT) for p in resumed]
-    for p, (_, err) in zip(resumed, outputs):
-        assert p.returncode == 0, err[-3000:]
-    assert "resumed" in outputs[0][0]
-    with np.load(reference / "run" / "raw" / "ppo_tl.npz") as fa, np.load(out / "raw" / "ppo_tl.npz") as fb:
-        for key in fa.files:
-            if key != "seconds":
-                np.testing.assert_array_equal(fa[key], fb[key], err_msg=key)
+    proc = _run(["bash", LAUNCHER, "2", "--", "--out", str(out), "--resume"])
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "resumed from checkpoint 1" in proc.stdout
+    _same_results(full_run, out)
+    stored, ref = (json.loads((d / "run.json").read_text()) for d in (out, full_run))
+    assert stored.pop("processes") == 2 and ref.pop("processes") == 1
+    assert stored == ref  # devices 2 in both
+    assert proc.stdout.count("mean iterations-to-success per task") == 1  # the report: process 0 alone
+    assert (out / "results.json").exists() and (out / "significance.md").exists()
 
     proc = _run([sys.executable, SCRIPT, "--out", str(out), "--resume"])
     assert proc.returncode == 2

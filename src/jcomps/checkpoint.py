@@ -64,49 +64,50 @@ class Checkpoints:
             options=self.ocp.CheckpointManagerOptions(max_to_keep=2, create=True, enable_async_checkpointing=False))
 
     def _set_aside(self, step: int) -> str:
-        """Moves an unreadable step out of the way (kept for inspection, never deleted; with several processes
-        process 0 moves it while the others wait)."""
+        """Moves an unreadable step out of the way (kept for inspection, never deleted)."""
         dest = os.path.join(self.directory + "-unreadable", f"{step}-{time.strftime('%Y%m%d-%H%M%S')}")
-        if distributed.is_writer():
-            os.makedirs(os.path.dirname(dest), exist_ok=True)
-            shutil.move(os.path.join(self.directory, str(step)), dest)
-        distributed.barrier(f"checkpoint step {step} set aside")
+        os.makedirs(os.path.dirname(dest), exist_ok=True)
+        shutil.move(os.path.join(self.directory, str(step)), dest)
         return dest
 
     def save(self, step: int, tree: dict):
         """Writes checkpoint ``step`` (every process calls it; ``distributed.PeerLost`` if a process is gone)."""
-        try:
+        with distributed.exchange(f"the writing of checkpoint step {step}"):
             self.manager.save(step, args=self.ocp.args.StandardSave(tree), force=True)
             self.manager.wait_until_finished()
-        except Exception as err:  # noqa: BLE001
-            if distributed.process_count() > 1:
-                raise distributed.PeerLost(f"lost the other processes while writing checkpoint step {step} "
-                                           f"({type(err).__name__}: {str(err)[:200]})") from err
-            raise
 
     def restore_latest(self, like: dict, warn) -> Optional[tuple[int, dict]]:
         """The newest readable checkpoint (an unreadable one is set aside and reported through ``warn(message)``,
         and the one before it is tried). Device arrays in ``like`` are restored as device arrays with their
-        sharding (each process its own shards), anything else as NumPy arrays. With several processes a step is
-        readable when every process read it."""
+        sharding (each process its own shards), anything else as NumPy arrays.
+
+        With several processes an unreadable step stops the run (``RunError``, naming it) instead: Orbax's restore
+        ends in a barrier of every process, which a process that failed before it never reaches, so the processes
+        cannot agree to try the step before; the user moves the step aside and resumes."""
         errors = []
         target = jax.tree.map(_target, like)
         for step in sorted(self.manager.all_steps(), reverse=True):
             try:
-                tree = self.manager.restore(step, args=self.ocp.args.StandardRestore(target))
+                with distributed.exchange(f"the reading of checkpoint step {step}"):
+                    tree = self.manager.restore(step, args=self.ocp.args.StandardRestore(target))
                 tree = jax.tree.map(lambda t, x: x if isinstance(t, jax.ShapeDtypeStruct) else np.asarray(x),
                                     target, tree)
                 _check_like(target, tree)
-                error = None
+            except distributed.PeerLost:
+                raise
             except Exception as err:  # noqa: BLE001 - any failure to read means this checkpoint is unusable
-                error = f"step {step}: {type(err).__name__}: {str(err)[:300]}"
-            if distributed.all_agree(error is None, f"reading checkpoint step {step}"):
-                if errors:
-                    self._open()
-                return step, tree
-            errors.append(error or f"step {step}: another process could not read it")
-            dest = self._set_aside(step)
-            warn(f"checkpoint step {step} in {self.directory} cannot be read ({errors[-1]}); moved to {dest}")
+                errors.append(f"step {step}: {type(err).__name__}: {str(err)[:300]}")
+                if distributed.process_count() > 1:
+                    raise RunError(f"checkpoint step {step} in {self.directory} cannot be read by process "
+                                   f"{jax.process_index()} ({errors[-1]}); move {self.directory}/{step} out of the "
+                                   f"way and resume every process again (they continue from the step before)"
+                                   ) from None
+                dest = self._set_aside(step)
+                warn(f"checkpoint step {step} in {self.directory} cannot be read ({errors[-1]}); moved to {dest}")
+                continue
+            if errors:
+                self._open()
+            return step, tree
         if errors:
             raise RunError("no readable checkpoint (unreadable ones were moved to "
                            f"{self.directory}-unreadable): " + " | ".join(errors))

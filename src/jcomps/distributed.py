@@ -30,9 +30,11 @@ the line before it says what it was waiting for).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import os
+import re
 import socket
 import sys
 import threading
@@ -187,14 +189,14 @@ def start(cluster: Cluster) -> None:
         return
     import jax
 
-    where = cluster.coordinator or f"the address {cluster.detected} gives"
+    address = cluster.coordinator or _detected_address(cluster)
+    where = address or f"the address {cluster.detected} gives"
     # JAX's client aborts the process (a C++ fatal error, no Python exception) when it cannot reach the
     # coordinator, so a process other than 0 first checks that something listens there.
     # Said first, since a process whose peers never come is ended by JAX's own fatal error after the timeout.
     print(f"process {cluster.process_id} of {cluster.num_processes}: joining the run through the coordinator at "
           f"{where} (waiting up to {cluster.coordinator_timeout} s for every process)", file=sys.stderr, flush=True)
-    if cluster.coordinator and cluster.process_id != 0 and not _reachable(cluster.coordinator,
-                                                                        cluster.coordinator_timeout):
+    if address and cluster.process_id != 0 and not _reachable(address, cluster.coordinator_timeout):
         _cannot_join(cluster, where, "nothing listens there")
     try:
         jax.distributed.initialize(cluster.coordinator, cluster.num_processes, cluster.process_id,
@@ -202,8 +204,20 @@ def start(cluster: Cluster) -> None:
                                    initialization_timeout=cluster.coordinator_timeout,
                                    heartbeat_timeout_seconds=cluster.heartbeat_timeout)
     except Exception as err:  # noqa: BLE001 - any failure to connect is reported the same way
-        _cannot_join(cluster, where, str(err).strip().splitlines()[0][:300] if str(err).strip()
-                     else type(err).__name__)
+        _cannot_join(cluster, where, _first_line(err))
+
+
+def _detected_address(cluster: Cluster) -> Optional[str]:
+    """The coordinator's address that JAX's cluster detection gives (SLURM: the step's first node and a port from
+    the job id), None if it cannot tell."""
+    try:
+        from jax._src import clusters
+
+        address, *_ = clusters.ClusterEnv.auto_detect_unset_distributed_params(
+            None, cluster.num_processes, cluster.process_id, None, None, cluster.coordinator_timeout)
+        return address
+    except Exception:  # noqa: BLE001 - private API: without it, JAX's own detection still runs
+        return None
 
 
 def _reachable(address: str, timeout: float) -> bool:
@@ -240,9 +254,37 @@ def is_writer() -> bool:
     return jax.process_index() == 0
 
 
-def _lost(what: str, err: BaseException) -> PeerLost:
-    message = str(err).strip().splitlines()[0][:300] if str(err).strip() else type(err).__name__
-    return PeerLost(f"lost the other processes during {what} ({message})")
+def _first_line(err: BaseException) -> str:
+    text = str(err).strip()
+    return text.splitlines()[0][:300] if text else type(err).__name__
+
+
+# How XLA's runtime words a failed status (gloo's failed collectives reach Python as a ValueError worded so).
+_STATUS = re.compile(r"^(UNKNOWN|UNAVAILABLE|INTERNAL|DEADLINE_EXCEEDED|ABORTED|CANCELLED|FAILED_PRECONDITION): ")
+
+
+def runtime_failure(err: BaseException) -> bool:
+    """Whether ``err`` is a failure of JAX's runtime (a collective or barrier whose peer is gone), not a local
+    error: a ``jax.errors.JaxRuntimeError``, or an error worded as an XLA status (``UNKNOWN: Gloo AllGather
+    failed: ... Connection reset by peer``)."""
+    import jax
+
+    return isinstance(err, jax.errors.JaxRuntimeError) or bool(_STATUS.match(str(err)))
+
+
+@contextlib.contextmanager
+def exchange(what: str):
+    """Around an exchange between processes (a collective, a barrier, a checkpoint's write): a failure of JAX's
+    runtime (``runtime_failure``: a peer that is gone) becomes ``PeerLost``; any other error (a full disk,
+    processes that took different paths) stays what it is, to be reported as such."""
+    import jax
+
+    try:
+        yield
+    except Exception as err:  # noqa: BLE001 - sorted below; anything else is raised as it is
+        if jax.process_count() == 1 or not runtime_failure(err):
+            raise
+        raise PeerLost(f"lost the other processes during {what} ({_first_line(err)})") from err
 
 
 def barrier(name: str) -> None:
@@ -253,10 +295,8 @@ def barrier(name: str) -> None:
         return
     from jax.experimental import multihost_utils
 
-    try:
+    with exchange(f"the barrier {name!r}"):
         multihost_utils.sync_global_devices(name)
-    except Exception as err:  # noqa: BLE001 - a failed barrier means a peer is gone
-        raise _lost(f"the barrier {name!r}", err) from err
 
 
 def all_agree(flag: bool, what: str) -> bool:
@@ -268,10 +308,8 @@ def all_agree(flag: bool, what: str) -> bool:
         return bool(flag)
     from jax.experimental import multihost_utils
 
-    try:
+    with exchange(what):
         return bool(np.all(multihost_utils.process_allgather(np.asarray(bool(flag)))))
-    except Exception as err:  # noqa: BLE001
-        raise _lost(what, err) from err
 
 
 def put(tree, sharding):
@@ -310,10 +348,8 @@ def gather(tree, what: str = "gathering metrics"):
         replicate = _REPLICATE.get(mesh)
         if replicate is None:
             replicate = _REPLICATE[mesh] = jax.jit(lambda xs: xs, out_shardings=NamedSharding(mesh, PartitionSpec()))
-        try:
+        with exchange(what):
             whole = jax.block_until_ready(replicate([leaves[i] for i in remote]))
-        except Exception as err:  # noqa: BLE001 - a failed collective means a peer is gone
-            raise _lost(what, err) from err
         for i, x in zip(remote, whole):
             leaves[i] = x
     host = [np.zeros(x.shape, x.dtype) if np.size(x) == 0 else np.asarray(jax.device_get(x)) for x in leaves]
@@ -457,10 +493,21 @@ def _process_index() -> int:
 
 def progress_receiver(progress_fn: Callable[[dict], None], interval: float = 2.0):
     """The receiver this process hands the runner: ``progress_fn`` itself for one process; on process 0 of several
-    a ``Merger`` around it, on the others a ``Relay`` (``progress_fn`` unused). Close it (``close``, where it has
-    one) when the run ends."""
+    a ``Merger`` around it, on the others a ``Relay`` (``progress_fn`` unused). ``close_receiver`` when the run
+    ends."""
     if process_count() == 1:
         return progress_fn
     if is_writer():
         return Merger(progress_fn, process_count(), interval)
     return Relay(interval)
+
+
+def close_receiver(receiver) -> None:
+    """Ends ``progress_receiver``'s receiver on every process: the relays publish what is left, then (a barrier)
+    process 0 shows it."""
+    if isinstance(receiver, Relay):
+        receiver.close()
+    if process_count() > 1:
+        barrier("progress published")
+    if isinstance(receiver, Merger):
+        receiver.close()

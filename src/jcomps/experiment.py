@@ -146,7 +146,8 @@ def run(out: str, run_config: RunConfig, eval_config: continual.EvalConfig, meth
     for name in run_config.methods:
         for spec in grids.programs(name, method_configs[name], grid):
             done = {p.key: results.load(out, p.key) for p in spec.points} if resume else {}
-            if done and all(raw is not None for raw in done.values()):
+            finished = bool(done) and all(raw is not None for raw in done.values())
+            if distributed.all_agree(finished, "deciding what is left to run"):  # every process skips it, or none
                 progress_fn({"event": SKIPPED, "program": spec.label})
             else:
                 done = run_program(out, spec, run_config, eval_config, resume, progress_fn, programs)

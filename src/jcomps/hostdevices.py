@@ -17,7 +17,7 @@ parallel path out; we pin 0.10.2.)
 The pool's size also moves float rounding: XLA:CPU's results differ in the last bits between ``NPROC=3`` and
 ``NPROC=4`` (seen on a PPO run). Runs are bit-for-bit reproducible for the same devices *and* pool; several
 processes on one machine (``scripts/local_cluster.sh``) each get the pool one process with all the devices has
-(``NPROC`` set by the launcher), so that they give that process's results exactly.
+(``LOCAL_PROCESSES``), so that they give that process's results exactly.
 
 >>> from jcomps import hostdevices
 >>> hostdevices.configure(2)      # before the first ``import jax`` in the process
@@ -44,17 +44,26 @@ def cores() -> int:
         return os.cpu_count() or 1
 
 
+LOCAL_PROCESSES = "JCOMPS_LOCAL_PROCESSES"
+"""Environment variable: how many processes of one run share this machine (``scripts/local_cluster.sh`` sets it),
+each with the same device count; the pool is then sized as for one process with all their devices."""
+
+
 def environment(devices: int, environ: MutableMapping[str, str] | None = None) -> dict[str, str]:
     """``environ`` (default ``os.environ``) updated for ``devices`` host devices: ``XLA_FLAGS`` with the device
-    count (any earlier count replaced, other flags kept) and ``NPROC`` (the intra-op pool size; a value the user
-    set, or ``PORTABLE_NPROC``, is kept). Returns a new dict; nothing is changed."""
+    count (any earlier count replaced, other flags kept) and ``NPROC`` (the intra-op pool size: cores + devices,
+    the devices of every process of the run on this machine when ``LOCAL_PROCESSES`` says there are several; a
+    value the user set, or ``PORTABLE_NPROC``, is kept). Returns a new dict; nothing is changed."""
     if not isinstance(devices, int) or isinstance(devices, bool) or devices < 1:
         raise ValueError(f"devices must be an integer >= 1, got {devices!r}")
     env = dict(os.environ if environ is None else environ)
     flags = [f for f in env.get("XLA_FLAGS", "").split() if not f.startswith(DEVICE_FLAG)]
     env["XLA_FLAGS"] = " ".join(flags + [f"{DEVICE_FLAG}={devices}"])
+    local = env.get(LOCAL_PROCESSES, "1")
+    if not local.isdigit() or int(local) < 1:
+        raise ValueError(f"{LOCAL_PROCESSES} must be an integer >= 1, got {local!r}")
     if "NPROC" not in env and "PORTABLE_NPROC" not in env:
-        env["NPROC"] = str(cores() + devices)
+        env["NPROC"] = str(cores() + devices * int(local))
     return env
 
 
