@@ -1,0 +1,101 @@
+"""Can the MetaWorld family's threshold be reached as jcomps measures it? MetaWorld's own scripted policies
+(``metaworld.policies``) on the family's tasks, under our rules: T_max = 150 steps (MetaWorld's own step limit
+off, as in the family), success rate = the fraction of episodes with at least one success step, threshold 0.2.
+
+The family hides the goal from the observation (ML1's train tasks); a scripted policy needs it, so here the
+policy is shown the environment's target in the observation's goal slot (``_partially_observable = False``
+alone shows it at reset but not in the steps). The variants' resets are deterministic, so
+episodes differ only by Gaussian action noise of std ``--noise`` (MetaWorld's own policy tests use 0.1); with 0
+every episode is the same. One line per task as ``key=value`` pairs, then one per environment.
+
+    python benchmarks/check_metaworld_scripted.py [--tasks P-0 B-1 H-2 ...] [--episodes 10] [--noise 0.1] \
+        [--steps 150]
+
+Default tasks: the first 9 of the paper's sequence (P-0 … H-8) and the held-out ones (P-39 … H-47).
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+import warnings
+
+import numpy as np
+
+from jcomps.envs import metaworld as family
+from jcomps.envs import metaworld_host as host
+
+POLICIES = {"P": "SawyerPushWallV3Policy", "B": "SawyerButtonPressWallV3Policy", "H": "SawyerHammerV3Policy"}
+
+
+def parse_task(text: str) -> tuple[int, int]:
+    """``P-3`` -> (0, 3): the environment index and goal index of a task named as in the paper."""
+    m = re.fullmatch(r"([PBH])-(\d+)", text)
+    if m is None or int(m.group(2)) >= host.NUM_VARIANTS:
+        raise argparse.ArgumentTypeError(f"a task is P-k, B-k or H-k with k in [0, {host.NUM_VARIANTS - 1}], "
+                                         f"got {text!r}")
+    return host.LETTERS.index(m.group(1)), int(m.group(2))
+
+
+def episodes(env: int, goal: int, count: int, noise: float, seed: int, steps: int = host.MAX_STEPS) -> np.ndarray:
+    """Per episode: (any success step, first success step or -1, return) over ``steps`` steps."""
+    import metaworld.policies
+    from metaworld.env_dict import ALL_V3_ENVIRONMENTS
+
+    policy = getattr(metaworld.policies, POLICIES[host.LETTERS[env]])()
+    rng = np.random.default_rng(seed)
+    out = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        e = ALL_V3_ENVIRONMENTS[host.ENV_NAMES[env]]()
+        e.set_task(host.variants(env)[goal])
+        e.max_path_length = np.iinfo(np.int32).max
+        for _ in range(count):
+            obs, _ = e.reset()
+            first, total = -1, 0.0
+            for t in range(steps):
+                # The policy needs the goal, which the family's observations hide (the learners never see it):
+                # the policy is shown the environment's target in the observation's goal slot.
+                seen = np.array(obs, np.float64)
+                seen[-3:] = e._target_pos
+                action = policy.get_action(seen)
+                action = np.clip(action + noise * rng.standard_normal(action.shape), -1.0, 1.0)
+                obs, reward, _, _, info = e.step(action)
+                total += float(reward)
+                if first < 0 and info["success"] > 0:
+                    first = t
+            out.append((first >= 0, first, total))
+    return np.asarray(out, np.float64)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    default = [family.label(v) for v in family.SEQUENCE[:9] + family.HELD_OUT]
+    parser.add_argument("--tasks", nargs="+", type=parse_task, default=[parse_task(t) for t in default])
+    parser.add_argument("--episodes", type=int, default=10)
+    parser.add_argument("--noise", type=float, default=0.1)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--steps", type=int, default=host.MAX_STEPS,
+                        help=f"episode length (default: the family's T_max, {host.MAX_STEPS}; MetaWorld's own is 500)")
+    args = parser.parse_args()
+    if args.episodes < 1 or args.steps < 1 or not args.noise >= 0:
+        sys.exit("--episodes and --steps must be >= 1, --noise >= 0")
+    rates: dict = {}
+    for env, goal in args.tasks:
+        r = episodes(env, goal, args.episodes, args.noise, args.seed, args.steps)
+        name = f"{host.LETTERS[env]}-{goal}"
+        rate = float(r[:, 0].mean())
+        rates.setdefault(host.LETTERS[env], []).append(rate)
+        hit = r[r[:, 0] > 0, 1]
+        print(f"task={name} episodes={args.episodes} steps={args.steps} noise={args.noise} success_rate={rate:.2f} "
+              f"reaches_threshold={rate >= family.SUCCESS_THRESHOLD} "
+              f"first_success_step_median={float(np.median(hit)) if hit.size else -1:.0f} "
+              f"mean_return={float(r[:, 2].mean()):.1f}", flush=True)
+    for letter, values in rates.items():
+        print(f"environment={letter} tasks={len(values)} mean_success_rate={np.mean(values):.2f} "
+              f"tasks_at_threshold={sum(v >= family.SUCCESS_THRESHOLD for v in values)}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
