@@ -21,7 +21,7 @@ CHILD = r"""
 import dataclasses, json, sys, time
 import jax, jax.numpy as jnp, numpy as np
 from jcomps import continual, envs, methods
-from jcomps.members import num_devices
+from jcomps.members import num_devices, task_sequences
 from jcomps.programs import Programs
 a = json.loads(sys.argv[1])
 family = envs.make(a["family"])
@@ -31,9 +31,7 @@ eval_config = continual.EvalConfig(backward_tasks=0, heldout_iterations=0)
 devices = num_devices(a["seeds"])
 program = Programs().get(a["method"], a["family"], config, eval_config, a["tasks"], devices)
 seeds = list(range(a["seeds"]))
-values = np.stack([envs.sequence_values(family, "non-stationary", s, a["tasks"]) for s in seeds])
-seqs = program.put(jax.tree.map(lambda x: x.reshape((len(seeds), a["tasks"]) + x.shape[1:]),
-                                family.tasks(values.reshape(-1))))
+seqs = program.put(task_sequences(family, "non-stationary", seeds, a["tasks"]))
 keys = program.put(jax.vmap(jax.random.PRNGKey)(jnp.asarray(seeds)))
 idx = program.put(np.arange(len(seeds), dtype=np.int32))
 states = program.init(keys)

@@ -48,7 +48,7 @@ def child(argv):
     import numpy as np
 
     from jcomps import continual, envs, methods
-    from jcomps.members import num_devices
+    from jcomps.members import num_devices, task_sequences
     from jcomps.programs import Programs
 
     a = json.loads(args.child)
@@ -61,12 +61,11 @@ def child(argv):
     devices = num_devices(a["seeds"])
     program = Programs().get(a["method"], a["family"], config, eval_config, a["tasks"], devices)
     seeds = list(range(a["seeds"]))
-    values = np.stack([envs.sequence_values(family, "non-stationary", s, a["tasks"]) for s in seeds])
-    seqs = program.put(jax.tree.map(lambda x: x.reshape((len(seeds), a["tasks"]) + x.shape[1:]),
-                                    family.tasks(values.reshape(-1))))
-    keys = program.put(jax.vmap(jax.random.PRNGKey)(jnp.asarray(seeds)))
+    seqs = program.put(task_sequences(family, "non-stationary", seeds, a["tasks"]))
+    host_keys = jax.vmap(jax.random.PRNGKey)(jnp.asarray(seeds))  # init takes them whole, on every process
+    keys = program.put(host_keys)
     idx = program.put(np.arange(len(seeds), dtype=np.int32))
-    states = program.init(jax.vmap(jax.random.PRNGKey)(jnp.asarray(seeds)))
+    states = program.init(host_keys)
 
     def chunk():
         _, metrics = program.run_chunk(states, seqs, 0, keys, idx)

@@ -5,8 +5,8 @@ sharded over the devices of *every* process (one global mesh over ``jax.devices(
 members on its own devices. The members never talk to each other, so the programs hold no collectives: processes
 meet only where the host needs every member at once, through JAX's own machinery:
 
-- ``gather``: the metrics after each task and evaluation, one all-gather per event (a jitted identity to a
-  replicated sharding: every process gets every member's metrics);
+- ``gather``: the metrics after each chunk of tasks and each evaluation, one all-gather per event (a jitted
+  identity to a replicated sharding: every process gets every member's metrics);
 - the checkpoints: Orbax's multi-process checkpointing (``jcomps.checkpoint``: every process writes and restores
   its own shards of the states, process 0 the metrics and counters, which every process holds whole);
 - ``barrier``: before process 0 writes the run directory's files that the others then read.
@@ -191,11 +191,11 @@ def start(cluster: Cluster) -> None:
 
     address = cluster.coordinator or _detected_address(cluster)
     where = address or f"the address {cluster.detected} gives"
-    # JAX's client aborts the process (a C++ fatal error, no Python exception) when it cannot reach the
-    # coordinator, so a process other than 0 first checks that something listens there.
     # Said first, since a process whose peers never come is ended by JAX's own fatal error after the timeout.
     print(f"process {cluster.process_id} of {cluster.num_processes}: joining the run through the coordinator at "
           f"{where} (waiting up to {cluster.coordinator_timeout} s for every process)", file=sys.stderr, flush=True)
+    # JAX's client aborts the process (a C++ fatal error, no Python exception) when it cannot reach the
+    # coordinator, so a process other than 0 first checks that something listens there.
     if address and cluster.process_id != 0 and not _reachable(address, cluster.coordinator_timeout):
         _cannot_join(cluster, where, "nothing listens there")
     try:
@@ -381,20 +381,20 @@ def report_and_exit(err: BaseException, cluster: Cluster) -> None:
 
 # --- Progress from every process ------------------------------------------------------------------------------
 
-RELAYED = ("iteration", "meta_step", "compress_iteration", "heldout_iteration", "task")
-"""The kinds of event a process other than 0 hands on (its members' progress inside the compiled programs: the
-``jcomps.progress`` phases); the runner's own events, the same on every process, come from process 0 itself."""
-
 _PREFIX = "jcomps/progress"
 
 
 class Relay:
     """The ``progress_fn`` of a process other than 0: keeps the newest event of each kind per member and program,
     and publishes them to the runtime's key-value store at most every ``interval`` seconds (from a thread), so
-    that process 0 (``Merger``) shows every member's progress. The runner's own events are dropped (process 0 has
-    them). ``close`` publishes what is left."""
+    that process 0 (``Merger``) shows every member's progress. Relayed: the members' progress inside the compiled
+    programs (the ``jcomps.progress`` phases); the runner's own events, the same on every process, are dropped
+    (process 0 has them). ``close`` publishes what is left."""
 
     def __init__(self, interval: float = 2.0, client=None):
+        from jcomps import progress  # imports JAX, which this module leaves until a process has joined
+
+        self.relayed = progress.PHASES
         self.interval = interval
         self.client = client if client is not None else _client()
         self.key = f"{_PREFIX}/{_process_index()}"
@@ -407,7 +407,7 @@ class Relay:
         self.thread.start()
 
     def __call__(self, event: dict):
-        if event.get("event") not in RELAYED:
+        if event.get("event") not in self.relayed:
             return
         with self.lock:
             self.sequence += 1

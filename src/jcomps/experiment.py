@@ -38,7 +38,7 @@ import numpy as np
 
 from jcomps import continual, distributed, envs, grid as grids, methods, progress, results
 from jcomps.checkpoint import Checkpoints, RunError, record, unflatten  # noqa: F401 - RunError: what run raises
-from jcomps.members import eval_keys, layout, method_keys, num_devices
+from jcomps.members import eval_keys, layout, method_keys, num_devices, task_sequences
 from jcomps.numerics import check_field, check_finite_fields
 from jcomps.programs import PART_NAMES, Programs
 from jcomps.rundir import describe, open_run_dir
@@ -220,7 +220,8 @@ class _ProgramRun:
                                     min(run.chunk_tasks, run.num_tasks), self.devices, spec.traced)
         self.hparams = self.program.put(self.hparams_host)
         self.name = self.points[0].key if len(self.points) == 1 else f"{spec.label}, {len(self.points)} grid points"
-        self.sequences = self.program.put(self._sequences())
+        self.sequences = self.program.put(task_sequences(self.family, run.sequence, self.member_seed,
+                                                         run.num_tasks))
         self.heldout_tasks = jax.device_get(envs.held_out(self.family))  # host arrays: the same on every process
         self.seed_index = self.program.put(np.arange(len(self.member_seed), dtype=np.int32))
         self.backward_keys = self.program.put(eval_keys(self.member_seed, 1))
@@ -233,14 +234,6 @@ class _ProgramRun:
                                       np.int64)
         self.checkpoints = Checkpoints(os.path.join(out, "checkpoints", spec.directory))
         self.next_chunk, self.seconds, self.started = 0, 0.0, time.time()
-
-    def _sequences(self):
-        """Every member's task sequence, Task [members, num_tasks, ...] on the host."""
-        run, seeds = self.run, self.member_seed
-        orders = {s: envs.sequence_values(self.family, run.sequence, s, run.num_tasks) for s in sorted(set(seeds))}
-        values = np.stack([orders[s] for s in seeds])
-        return jax.tree.map(lambda x: x.reshape((len(seeds), run.num_tasks) + x.shape[1:]),
-                            self.family.tasks(values.reshape(-1)))
 
     def emit(self, kind: str, **fields):
         """Hands the event ``kind`` of this program, with ``fields``, to the receiver."""

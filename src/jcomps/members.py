@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jcomps import grid as grids
+from jcomps import envs, grid as grids
 
 
 def num_devices(seeds: int, available: Optional[int] = None) -> int:
@@ -47,6 +47,14 @@ def layout(spec: grids.ProgramSpec, seeds: int, first_seed: int, devices: int) -
     seed = [first_seed + m % seeds for m in range(real)] + list(range(extra, extra + padded - real))
     hparams = {f: np.asarray([dict(spec.points[p].values)[f] for p in point], np.float32) for f in spec.traced}
     return point, seed, hparams
+
+
+def task_sequences(family: envs.Family, kind: str, seeds: list[int], num_tasks: int):
+    """Every member's task sequence on the host, Task [len(seeds), num_tasks, ...]: member ``m`` gets the
+    ``kind`` sequence of seed ``seeds[m]`` (``envs.sequence_values``; a stationary order is shuffled by the seed)."""
+    orders = {s: envs.sequence_values(family, kind, s, num_tasks) for s in sorted(set(seeds))}
+    values = np.stack([orders[s] for s in seeds])
+    return jax.tree.map(lambda x: x.reshape((len(seeds), num_tasks) + x.shape[1:]), family.tasks(values.reshape(-1)))
 
 
 # The method's and the evaluations' random streams come from separately salted roots of each seed's key. With
