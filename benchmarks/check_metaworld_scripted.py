@@ -9,7 +9,7 @@ episodes differ only by Gaussian action noise of std ``--noise`` (MetaWorld's ow
 every episode is the same. One line per task as ``key=value`` pairs, then one per environment.
 
     python benchmarks/check_metaworld_scripted.py [--tasks P-0 B-1 H-2 ...] [--episodes 10] [--noise 0.1] \
-        [--steps 150]
+        [--steps 150] [--reward v2|v1]
 
 Default tasks: the first 9 of the paper's sequence (P-0 … H-8) and the held-out ones (P-39 … H-47).
 """
@@ -38,7 +38,8 @@ def parse_task(text: str) -> tuple[int, int]:
     return host.LETTERS.index(m.group(1)), int(m.group(2))
 
 
-def episodes(env: int, goal: int, count: int, noise: float, seed: int, steps: int = host.MAX_STEPS) -> np.ndarray:
+def episodes(env: int, goal: int, count: int, noise: float, seed: int, steps: int = host.MAX_STEPS,
+             reward: str = "v2") -> np.ndarray:
     """Per episode: (any success step, first success step or -1, return) over ``steps`` steps."""
     import metaworld.policies
     from metaworld.env_dict import ALL_V3_ENVIRONMENTS
@@ -48,7 +49,7 @@ def episodes(env: int, goal: int, count: int, noise: float, seed: int, steps: in
     out = []
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        e = ALL_V3_ENVIRONMENTS[host.ENV_NAMES[env]]()
+        e = ALL_V3_ENVIRONMENTS[host.ENV_NAMES[env]](reward_function_version=reward)
         e.set_task(host.variants(env)[goal])
         e.max_path_length = np.iinfo(np.int32).max
         for _ in range(count):
@@ -78,17 +79,19 @@ def main():
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--steps", type=int, default=host.MAX_STEPS,
                         help=f"episode length (default: the family's T_max, {host.MAX_STEPS}; MetaWorld's own is 500)")
+    parser.add_argument("--reward", choices=host.REWARD_VERSIONS, default="v2",
+                        help="MetaWorld's reward function (v2: the family metaworld; v1: metaworld_v1)")
     args = parser.parse_args()
     if args.episodes < 1 or args.steps < 1 or not args.noise >= 0:
         sys.exit("--episodes and --steps must be >= 1, --noise >= 0")
     rates: dict = {}
     for env, goal in args.tasks:
-        r = episodes(env, goal, args.episodes, args.noise, args.seed, args.steps)
+        r = episodes(env, goal, args.episodes, args.noise, args.seed, args.steps, args.reward)
         name = f"{host.LETTERS[env]}-{goal}"
         rate = float(r[:, 0].mean())
         rates.setdefault(host.LETTERS[env], []).append(rate)
         hit = r[r[:, 0] > 0, 1]
-        print(f"task={name} episodes={args.episodes} steps={args.steps} noise={args.noise} success_rate={rate:.2f} "
+        print(f"task={name} reward={args.reward} episodes={args.episodes} steps={args.steps} noise={args.noise} success_rate={rate:.2f} "
               f"reaches_threshold={rate >= family.SUCCESS_THRESHOLD} "
               f"first_success_step_median={float(np.median(hit)) if hit.size else -1:.0f} "
               f"mean_return={float(r[:, 2].mean()):.1f}", flush=True)

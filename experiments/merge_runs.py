@@ -41,7 +41,9 @@ def merged_description(descriptions: list) -> dict:
                 continue
             a, b = first.get(key), desc.get(key)
             if key == "run":
-                a, b = {**a, "methods": None, "chunk_tasks": None}, {**b, "methods": None, "chunk_tasks": None}
+                # a run.json from before --tasks has the family's list: "tasks" []
+                a = {"tasks": [], **a, "methods": None, "chunk_tasks": None}
+                b = {"tasks": [], **b, "methods": None, "chunk_tasks": None}
             if a != b:
                 diff = rundir.differences({key: a}, {key: b})
                 raise RunError(f"{d} is not the same study as {dirs[0]}: " + "; ".join(diff[:4]))

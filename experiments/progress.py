@@ -170,7 +170,10 @@ class Console:
         extra = f" (+{event['padding']} to fill the devices, not reported)" if event["padding"] else ""
         points = event["grid_points"]
         grid_text = f" × {points} grid points = {points * event['seeds']} members" if points > 1 else ""
-        self.log(f"[{name}] {event['family']} {event['sequence']}, {event['num_tasks']} tasks, {event['seeds']} "
+        chosen = event.get("tasks") or []
+        order = (f"tasks {' '.join(chosen)}" + (" (shuffled per seed)" if event["sequence"] == "stationary" else "")
+                 if chosen else f"{event['sequence']}, {event['num_tasks']} tasks")
+        self.log(f"[{name}] {event['family']} {order}, {event['seeds']} "
                  f"seeds{grid_text}{extra} on {event['devices']} device(s), budget {event['budget']}, chunks of "
                  f"{event['chunk']}")
         self.progress[name] = Progress(name, len(event["members"]), event["num_tasks"], event["start_task"],

@@ -133,7 +133,7 @@ def render(run_dir: str, methods_=None, seed=None, tasks=None, mean=False, episo
     for t in tasks or ():
         if not 1 <= t <= run["num_tasks"]:
             raise experiment.RunError(f"--tasks {t}: tasks are numbered 1..{run['num_tasks']} in this run")
-    values = envs.sequence_values(family, run["sequence"], seed, run["num_tasks"])
+    values = envs.sequence_values(family, run["sequence"], seed, run["num_tasks"], run.get("tasks"))
     out_dir = out_dir or os.path.join(run_dir, "render")
     os.makedirs(out_dir, exist_ok=True)
     warn = lambda message: print_fn(f"warning: {message}")  # noqa: E731
@@ -153,7 +153,7 @@ def render(run_dir: str, methods_=None, seed=None, tasks=None, mean=False, episo
                 member = p * run["seeds"] + (seed - run["seed"])
                 state = jax.tree.map(lambda x: jnp.asarray(x[member]), states)
                 for t in tasks or [learnt]:
-                    task = envs.task_at(family, t - 1, run["sequence"], seed)
+                    task = envs.task_at(family, t - 1, run["sequence"], seed, run.get("tasks"))
                     rng = jax.random.fold_in(jax.random.PRNGKey(seed), t)
                     # the policy for task t (PEARL's latent from task t's replay buffer); a task not learnt yet
                     # meets the policy after the last one learnt

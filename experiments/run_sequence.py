@@ -138,7 +138,7 @@ def parse_args(argv=None):
         parser.error(str(err))
     if args.baseline is not None and args.baseline not in args.run.methods:
         parser.error(f"--baseline {args.baseline}: not one of --methods ({', '.join(args.run.methods)})")
-    available = len(envs.make(args.run.family).task_values)
+    available = len(args.run.tasks or envs.make(args.run.family).task_values)
     if args.run.num_tasks > available:
         parser.error(f"--num-tasks must be in [1, {available}] for {args.run.family}, got {args.run.num_tasks}")
     for name, config in args.configs.items():
@@ -172,6 +172,8 @@ def _grid(args):
 
 
 def _from_options(args):
+    if args.cfg_tasks and args.cfg_num_tasks is None:  # --tasks alone: as many tasks as given
+        args.cfg_num_tasks = len(args.cfg_tasks)
     args.run = cli.build_config(experiment.RunConfig, args)
     args.eval = cli.build_config(continual.EvalConfig, args)
     # Each method's config from its layers (methods.resolve_config): its registered default on the family, the

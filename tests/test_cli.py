@@ -4,6 +4,7 @@ import dataclasses
 import json
 import pathlib
 
+import numpy as np
 import pytest
 
 from jcomps import cli, envs, methods, ppo, rundir
@@ -157,3 +158,31 @@ def test_bad_set_exits_2_naming_it(runner, spec, message, capsys):
         runner.parse_args(["--set", spec, "--out", "/nonexistent/x"])
     assert exit_.value.code == 2
     assert message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("family,tasks,values", [
+    ("point_goal", ["10", "-45.5"], [10.0, -45.5]),
+    ("metaworld", ["P-3", "H-11", "102"], [3.0, 211.0, 102.0]),
+])
+def test_tasks_option_takes_the_familys_own_terms(runner, family, tasks, values):
+    args = runner.parse_args(["--family", family, "--tasks", *tasks, "--out", "/nonexistent/x"])
+    assert args.run.tasks == tuple(tasks) and args.run.num_tasks == len(tasks)
+    np.testing.assert_array_equal(envs.sequence_values(family, "non-stationary", 0, len(tasks), args.run.tasks),
+                                  values)
+    # stationary: the chosen tasks shuffled by the seed
+    shuffled = [envs.sequence_values(family, "stationary", s, len(tasks), args.run.tasks) for s in range(6)]
+    assert all(sorted(s) == sorted(values) for s in shuffled) and len({tuple(s) for s in shuffled}) > 1
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["--tasks", "abc"], "task 'abc' is not a number"),
+    (["--tasks", "720"], "720.0 is out of range"),
+    (["--tasks", "10", "20", "--num-tasks", "3"], "num_tasks=3; allowed: the number of tasks given (2)"),
+    (["--family", "metaworld", "--tasks", "P-50"], "goal indices are 0-49"),
+    (["--family", "metaworld", "--tasks", "Q-3"], "or its name P-k, B-k or H-k"),
+    (["--family", "metaworld", "--tasks", "2.5"], "2.5 is not a task"),
+])
+def test_bad_tasks_exit_2_naming_them(runner, argv, message, capsys):
+    with pytest.raises(SystemExit) as info:
+        runner.parse_args(argv + ["--out", "/nonexistent/x"])
+    assert info.value.code == 2 and message in capsys.readouterr().err

@@ -426,3 +426,27 @@ def test_to_host_takes_empty_arrays_sharded_over_devices():
     out = experiment.to_host({"empty": empty, "full": full})
     assert out["empty"].shape == (2, 3, 0) and out["empty"].dtype == np.float32
     np.testing.assert_array_equal(out["full"], np.arange(6).reshape(2, 3))
+
+
+def test_chosen_tasks_are_learnt_recorded_and_checked_on_resume(runner, full_run, full_run_argv, tmp_path, capsys):
+    """``--tasks`` replaces the family's list: the family's own first three tasks named explicitly give the very
+    run of ``full_run``, array for array; run.json records them, the start line names them, and a resume with
+    other tasks is refused."""
+    from jcomps import envs
+
+    chosen = [f"{v:g}" for v in envs.sequence_values("point_goal", "non-stationary", 0, 3)]
+    out = tmp_path / "chosen"
+    runner.main(full_run_argv + ["--tasks", *chosen, "--out", str(out)])
+    assert f"point_goal tasks {' '.join(chosen)}, 2 seeds" in capsys.readouterr().out
+    stored = json.loads((out / "run.json").read_text())
+    assert stored["run"]["tasks"] == chosen
+    for name in ("comps", "ppo_tl"):
+        a, b = _raw(full_run, name), _raw(out, name)
+        assert a.keys() == b.keys()
+        for key in a:
+            np.testing.assert_array_equal(a[key], b[key], err_msg=f"{name} {key}")
+    with pytest.raises(SystemExit) as info:
+        runner.main(["--out", str(out), "--resume", "--tasks", *chosen[::-1]])
+    assert info.value.code == 2 and "tasks" in capsys.readouterr().err
+    runner.main(["--out", str(out), "--resume"])
+    assert "already finished" in capsys.readouterr().out

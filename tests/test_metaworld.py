@@ -65,15 +65,17 @@ def test_task_codes_that_name_no_task_are_refused(family, bad):
 
 
 def test_host_steps_equal_metaworlds_own_steps():
-    """Our pure step (state in, state out) equals stepping MetaWorld's env object, bit for bit."""
+    """Our pure step (state in, state out) equals stepping MetaWorld's env object, bit for bit, with either reward
+    function (host environments 3-5: the v1 reward, the family ``metaworld_v1``)."""
     from metaworld.env_dict import ALL_V3_ENVIRONMENTS
 
     rng = np.random.default_rng(0)
-    for env, k in [(0, 3), (2, 5)]:
+    for env, k in [(0, 3), (2, 5), (5, 5)]:
+        version = host.REWARD_VERSIONS[env // 3]
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            ref = ALL_V3_ENVIRONMENTS[host.ENV_NAMES[env]]()
-            ref.set_task(host.variants(env)[k])
+            ref = ALL_V3_ENVIRONMENTS[host.ENV_NAMES[env % 3]](reward_function_version=version)
+            ref.set_task(host.variants(env % 3)[k])
             ref.max_path_length = 150
             obs_ref, _ = ref.reset()
         state, obs = host.reset([env], [k])
@@ -84,6 +86,20 @@ def test_host_steps_equal_metaworlds_own_steps():
             state, obs, reward, success = host.step([env], [k], state, action)
             np.testing.assert_array_equal(obs[0], obs_ref)
             assert reward[0] == reward_ref and success[0] == info["success"] and not terminated
+    # The two rewards differ on the same state and action; the rest of the step is the same.
+    state, _ = host.reset([2, 5], [5, 5])
+    _, obs, reward, success = host.step([2, 5], [5, 5], state, np.full((2, 4), 0.5, np.float32))
+    np.testing.assert_array_equal(obs[0], obs[1])
+    assert reward[0] != reward[1] and success[0] == success[1]
+
+
+def test_the_v1_reward_family_names_the_same_tasks():
+    v1 = envs.make("metaworld_v1")
+    assert v1.name == "metaworld_v1" and v1.task_values == envs.make("metaworld").task_values
+    task = v1.tasks(v1.parse_values(["P-3", "H-11"]))
+    np.testing.assert_array_equal(task.env, [3, 5])  # host environments with the v1 reward
+    np.testing.assert_array_equal(task.variant, [3, 11])
+    assert methods.default_config("ppo_tl", "metaworld_v1") == methods.default_config("ppo_tl", "metaworld")
 
 
 def test_a_variant_starts_from_the_same_state_every_reset_and_variants_differ():

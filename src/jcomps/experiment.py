@@ -60,6 +60,10 @@ class RunConfig:
     """The first seed; seeds are seed, seed + 1, ..."""
     num_tasks: int = 6
     """Length of the sequence (a prefix of the family's list, shuffled per seed if stationary)."""
+    tasks: tuple[str, ...] = ()
+    """Chosen tasks, in the family's own terms, instead of the family's list (then ``num_tasks`` is their number):
+    MetaWorld P-3, B-1, H-11 (or codes), goal velocities in m/s on Half-Cheetah, angles in degrees on Point Goal
+    and the Ants. Every seed learns them in this order (``stationary``: shuffled by the seed)."""
     chunk_tasks: int = 2
     """Tasks per compiled chunk; a checkpoint is written after every chunk."""
 
@@ -74,6 +78,13 @@ class RunConfig:
         check_field(self.seeds >= 1, "seeds", self.seeds, "an integer >= 1")
         check_field(self.seed >= 0, "seed", self.seed, "an integer >= 0")
         check_field(self.num_tasks >= 1, "num_tasks", self.num_tasks, "an integer >= 1")
+        if self.tasks:
+            check_field(self.num_tasks == len(self.tasks), "num_tasks", self.num_tasks,
+                        f"the number of tasks given ({len(self.tasks)}), or leave it out")
+            try:
+                envs.make(self.family).parse_values(self.tasks)
+            except ValueError as err:
+                raise ValueError(f"tasks: {err}") from None
         check_field(self.chunk_tasks >= 1, "chunk_tasks", self.chunk_tasks, "an integer >= 1")
 
 
@@ -102,6 +113,7 @@ ProgressReceiver = Callable[[dict], None]
 ``event["event"]`` says which (``EVENTS``):
 
 - ``START``: a program begins, before anything compiles (``program``, ``family``, ``sequence``, ``num_tasks``,
+  ``tasks`` (the chosen tasks, empty for the family's list),
   ``seeds``, ``grid_points``, ``padding``, ``devices``, ``budget``, ``chunk``, ``start_task``: 0, ``members``:
   each member's name);
 - ``COMPILING`` / ``COMPILED``: one of its programs (``jcomps.programs.PARTS``) is being compiled / is ready
@@ -221,7 +233,7 @@ class _ProgramRun:
         self.hparams = self.program.put(self.hparams_host)
         self.name = self.points[0].key if len(self.points) == 1 else f"{spec.label}, {len(self.points)} grid points"
         self.sequences = self.program.put(task_sequences(self.family, run.sequence, self.member_seed,
-                                                         run.num_tasks))
+                                                         run.num_tasks, run.tasks))
         self.heldout_tasks = jax.device_get(envs.held_out(self.family))  # host arrays: the same on every process
         self.seed_index = self.program.put(np.arange(len(self.member_seed), dtype=np.int32))
         self.backward_keys = self.program.put(eval_keys(self.member_seed, 1))
@@ -263,7 +275,8 @@ class _ProgramRun:
         """The members' states to continue from: the initial ones (the learning program compiled for them), or
         with ``resume`` those of the newest readable checkpoint, with the metrics so far and ``next_chunk``."""
         run = self.run
-        self.emit(START, family=run.family, sequence=run.sequence, num_tasks=run.num_tasks, seeds=run.seeds,
+        self.emit(START, family=run.family, sequence=run.sequence, num_tasks=run.num_tasks, tasks=list(run.tasks),
+                  seeds=run.seeds,
                   grid_points=len(self.points), padding=self.padding, devices=self.devices,
                   budget=methods.collection(self.spec.config).budget_for(self.family), chunk=self.program.chunk,
                   start_task=0, members=[f"{self.points[p].key} seed {s}"

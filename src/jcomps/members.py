@@ -49,10 +49,11 @@ def layout(spec: grids.ProgramSpec, seeds: int, first_seed: int, devices: int) -
     return point, seed, hparams
 
 
-def task_sequences(family: envs.Family, kind: str, seeds: list[int], num_tasks: int):
+def task_sequences(family: envs.Family, kind: str, seeds: list[int], num_tasks: int, tasks=None):
     """Every member's task sequence on the host, Task [len(seeds), num_tasks, ...]: member ``m`` gets the
-    ``kind`` sequence of seed ``seeds[m]`` (``envs.sequence_values``; a stationary order is shuffled by the seed)."""
-    orders = {s: envs.sequence_values(family, kind, s, num_tasks) for s in sorted(set(seeds))}
+    ``kind`` sequence of seed ``seeds[m]`` (``envs.sequence_values``, of the family's list or of ``tasks``; a
+    stationary order is shuffled by the seed)."""
+    orders = {s: envs.sequence_values(family, kind, s, num_tasks, tasks) for s in sorted(set(seeds))}
     values = np.stack([orders[s] for s in seeds])
     return jax.tree.map(lambda x: x.reshape((len(seeds), num_tasks) + x.shape[1:]), family.tasks(values.reshape(-1)))
 

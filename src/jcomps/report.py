@@ -180,7 +180,8 @@ def summarize(description: dict, raws: dict, baseline: Optional[str] = None) -> 
             best[m]: probability_of_improvement(raws[best[m]], raws[best[baseline]], best[baseline])
             for m in run["methods"] if m != baseline}
     reference = best.get(FT_REFERENCE)
-    ids = np.stack([envs.sequence_values(family, run["sequence"], s, run["num_tasks"]) for s in seeds])
+    ids = np.stack([envs.sequence_values(family, run["sequence"], s, run["num_tasks"], run.get("tasks"))
+                    for s in seeds])
     for _, name, _ in entries:
         results["methods"][name]["forward_transfer"] = forward_transfer_summary(
             raws[name], None if reference is None else raws[reference], reference, ids, horizon)

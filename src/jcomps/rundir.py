@@ -123,6 +123,10 @@ def _check_resumable(out: str, run_json: str, description: dict) -> None:
         if isinstance(stored.get("methods", {}).get(name), dict):
             default = _jsonable(methods.default_config(name, description["run"]["family"]))
             filled += _fill_added_fields(stored["methods"][name], config, default, f"methods.{name}.")
+    if isinstance(stored.get("run"), dict) and isinstance(description.get("run"), dict):
+        from jcomps import experiment  # experiment imports this module
+
+        filled += _fill_added_fields(stored["run"], description["run"], _jsonable(experiment.RunConfig()), "run.")
     if isinstance(stored.get("eval"), dict) and isinstance(description.get("eval"), dict):
         filled += _fill_added_fields(stored["eval"], description["eval"], _jsonable(continual.EvalConfig()), "eval.")
     if "processes" not in stored and "processes" in description:  # made before runs spread over processes

@@ -83,10 +83,13 @@ def _mujoco(name: str) -> Callable[[], Family]:
     return make_fn
 
 
-def _metaworld() -> Family:
-    from jcomps.envs import metaworld
+def _metaworld(reward: str = "v2") -> Callable[[], Family]:
+    def make_fn() -> Family:
+        from jcomps.envs import metaworld
 
-    return metaworld.make()
+        return metaworld.make(reward)
+
+    return make_fn
 
 
 # The calibrated settings (docs/families.md has the calibration tables and commands).
@@ -116,7 +119,9 @@ register("ant_goal", _mujoco("ant_goal"), {
 register("ant_dir", _mujoco("ant_dir"), {
     "ppo": {**_MUJOCO_PPO, "init_std": 0.15},
     "pearl": {"context_size": 256, "updates_per_step": 0.8, "prior_fraction": 0.4, "kl_weight": 0.4}})
-register("metaworld", _metaworld, {"ppo": dict(_MUJOCO_PPO), "meta": {"inner_learning_rate": 0.0025}})
+register("metaworld", _metaworld(), {"ppo": dict(_MUJOCO_PPO), "meta": {"inner_learning_rate": 0.0025}})
+# The same tasks with MetaWorld v1's original reward (issue 32 measures both; docs/families.md).
+register("metaworld_v1", _metaworld("v1"), {"ppo": dict(_MUJOCO_PPO), "meta": {"inner_learning_rate": 0.0025}})
 
 FAMILIES = names()
 """The families jcomps ships (``names()`` also lists any registered since)."""
@@ -127,16 +132,21 @@ def _family(family: Family | str) -> Family:
 
 
 def sequence_values(family: Family | str, kind: str = "non-stationary", seed: int = 0,
-                    num_tasks: int | None = None) -> np.ndarray:
+                    num_tasks: int | None = None, tasks=None) -> np.ndarray:
     """Task parameter values of a training sequence, f32[num_tasks].
 
     ``non-stationary`` is the paper's fixed order; ``stationary`` is the same list shuffled by ``seed``.
-    ``num_tasks`` (default: the whole list) takes a prefix.
+    ``num_tasks`` (default: the whole list) takes a prefix. ``tasks``: a list of the family's task names or values
+    (``Family.parse_values``, e.g. ``["P-3", "H-11"]`` on MetaWorld) that replaces the family's list (a run's
+    ``--tasks``); empty or None: the family's list.
     """
     family = _family(family)
     if kind not in SEQUENCE_KINDS:
         raise ValueError(f"unknown sequence kind {kind!r}; allowed: {', '.join(SEQUENCE_KINDS)}")
-    values = np.asarray(family.task_values, np.float32)
+    if tasks is not None and len(tasks):
+        values = family.parse_values([str(t) for t in tasks])
+    else:
+        values = np.asarray(family.task_values, np.float32)
     n = len(values)
     if num_tasks is None:
         num_tasks = n
@@ -153,10 +163,10 @@ def sequence(family: Family | str, kind: str = "non-stationary", seed: int = 0, 
     return family.tasks(sequence_values(family, kind, seed, num_tasks))
 
 
-def task_at(family: Family | str, index: int, kind: str = "non-stationary", seed: int = 0):
+def task_at(family: Family | str, index: int, kind: str = "non-stationary", seed: int = 0, tasks=None):
     """Task number ``index`` (0-based) of a training sequence, as an unstacked task pytree."""
     family = _family(family)
-    values = sequence_values(family, kind, seed)
+    values = sequence_values(family, kind, seed, tasks=tasks)
     if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not 0 <= index < len(values):
         raise IndexError(f"task index must be an integer in [0, {len(values) - 1}] for {family.name}, got {index!r}")
     return jax.tree.map(lambda x: x[0], family.tasks(values[index:index + 1]))

@@ -155,6 +155,20 @@ class Family:
         """Validated task pytree for task parameter ``values`` (a 1-D sequence), stacked on axis 0."""
         return self.make_task(jnp.asarray(validate_values(self, values), jnp.float32))
 
+    def parse_value(self, text: str) -> float:
+        """A task parameter value from its name on a command line (a number: degrees, m/s, a code); families
+        with names of their own (MetaWorld's ``P-3``) take those too. Not yet range-checked: see ``parse_values``."""
+        try:
+            return float(text)
+        except (TypeError, ValueError):
+            raise ValueError(f"{self.name}: task {text!r} is not a number; a task is {self.value_name}") from None
+
+    def parse_values(self, texts) -> np.ndarray:
+        """``parse_value`` of each name, checked to be tasks of the family (``tasks``): f32[len(texts)]."""
+        values = np.asarray([self.parse_value(t) for t in texts], np.float32)
+        self.tasks(values)
+        return values
+
 
 def validate_values(family: Family, values) -> np.ndarray:
     """Checks a list of task parameter values and returns it as a float32 array, or raises ValueError."""

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import re
 import threading
 from typing import NamedTuple
 
@@ -64,9 +65,12 @@ class MetaWorldTask(NamedTuple):
     variant: jax.Array
 
 
-def make_task(values: jax.Array) -> MetaWorldTask:
+def make_task(values: jax.Array, reward: str = "v2") -> MetaWorldTask:
+    """The task of each code; ``reward`` picks MetaWorld's reward function (``metaworld_host.REWARD_VERSIONS``),
+    carried in the host environment index (``env`` 0-2 for "v2", 3-5 for "v1")."""
     v = jnp.round(jnp.asarray(values, jnp.float32)).astype(jnp.int32)
-    return MetaWorldTask(env=v // 100, variant=v % 100)
+    offset = len(host.ENV_NAMES) * host.REWARD_VERSIONS.index(reward)
+    return MetaWorldTask(env=v // 100 + offset, variant=v % 100)
 
 
 _STATE_WORDS = 2 * host.STATE_SIZE  # float64 bits as uint32 pairs
@@ -169,6 +173,18 @@ class MetaWorldFamily(base.Family):
         """The fraction of the batch's trajectories with at least one success step (``success`` f32[T, B])."""
         return jnp.mean(jnp.max(success, axis=0))
 
+    def parse_value(self, text: str) -> float:
+        """``P-3``, ``B-1``, ``H-2`` (the paper's names) or a task code (``203``)."""
+        m = re.fullmatch(r"\s*([PBH])-(\d+)\s*", str(text))
+        if m is None:
+            try:
+                return super().parse_value(text)
+            except ValueError as err:
+                raise ValueError(f"{err}, or its name P-k, B-k or H-k (e.g. P-3)") from None
+        if int(m.group(2)) >= host.NUM_VARIANTS:
+            raise ValueError(f"{self.name}: task {text!r} does not exist; goal indices are 0-{host.NUM_VARIANTS - 1}")
+        return float(code(host.LETTERS.index(m.group(1)), int(m.group(2))))
+
     def tasks(self, values):
         arr = base.validate_values(self, values)
         for v in arr:
@@ -177,12 +193,18 @@ class MetaWorldFamily(base.Family):
         return self.make_task(jnp.asarray(arr, jnp.float32))
 
 
-def make() -> base.Family:
+def make(reward: str = "v2") -> base.Family:
+    """The family with MetaWorld's reward function ``reward``: "v2" (``metaworld``, the v3 environments' default,
+    the reward of the v2 environments the paper used) or "v1" (``metaworld_v1``, MetaWorld v1's original reward;
+    the same tasks, observations, success and rules)."""
+    if reward not in host.REWARD_VERSIONS:
+        raise ValueError(f"metaworld reward: {reward!r} is not one of {', '.join(host.REWARD_VERSIONS)}")
     return MetaWorldFamily(
-        name="metaworld", obs_size=host.OBS_SIZE, action_size=host.ACTION_SIZE, max_steps=host.MAX_STEPS,
+        name="metaworld" if reward == "v2" else f"metaworld_{reward}", obs_size=host.OBS_SIZE,
+        action_size=host.ACTION_SIZE, max_steps=host.MAX_STEPS,
         success_threshold=SUCCESS_THRESHOLD, default_budget=BUDGET, task_values=SEQUENCE,
         held_out_values=HELD_OUT, value_range=(0.0, 100.0 * (len(host.ENV_NAMES) - 1) + host.NUM_VARIANTS - 1),
         value_name=(f"a task code 100·e + k: environment e (0 Push-Wall, 1 Button-Press-Wall, 2 Hammer) and goal "
                     f"index k (an integer 0-{host.NUM_VARIANTS - 1})"),
-        make_task=make_task, reset_fn=reset, step_fn=step, host_rollout=host_rollout,
+        make_task=functools.partial(make_task, reward=reward), reset_fn=reset, step_fn=step, host_rollout=host_rollout,
     )

@@ -43,6 +43,12 @@ ENV_NAMES = ("push-wall-v3", "button-press-wall-v3", "hammer-v3")
 """The paper's three environments (it used their v2 versions; metaworld 3.1.1 has v3 only)."""
 LETTERS = "PBH"
 """The paper's short names: Push-Wall (P), Button-Press-Wall (B), Hammer (H)."""
+REWARD_VERSIONS = ("v2", "v1")
+"""MetaWorld's reward functions (``reward_function_version``): "v2", the environments' default and the reward of
+the v2 environments the paper used, and "v1", MetaWorld v1's original reward. A host environment index ``e``
+names environment ``ENV_NAMES[e % 3]`` with reward ``REWARD_VERSIONS[e // 3]``."""
+NUM_ENVS = len(ENV_NAMES) * len(REWARD_VERSIONS)
+"""Host environment indices: 0-2 the three environments with the v2 reward, 3-5 with the v1 reward."""
 NUM_VARIANTS = 50
 """Goal variants per environment: ``metaworld.ML1(name, seed=BENCHMARK_SEED).train_tasks``."""
 BENCHMARK_SEED = 0
@@ -94,14 +100,15 @@ class _Variant:
         self.mujoco = mujoco
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            self.env = ALL_V3_ENVIRONMENTS[ENV_NAMES[env]]()
-            self.env.set_task(variants(env)[variant])
+            name, version = ENV_NAMES[env % len(ENV_NAMES)], REWARD_VERSIONS[env // len(ENV_NAMES)]
+            self.env = ALL_V3_ENVIRONMENTS[name](reward_function_version=version)
+            self.env.set_task(variants(env % len(ENV_NAMES))[variant])
             # Time limits are ours (T_max = 150, a truncation); MetaWorld's own counter must never stop a step.
             self.env.max_path_length = np.iinfo(np.int32).max
             obs, _ = self.env.reset()
         self.n = mujoco.mj_stateSize(self.env.model, _SPEC)
         if self.n + PREV_OBS_SIZE > STATE_SIZE:
-            raise RuntimeError(f"{ENV_NAMES[env]}: state of {self.n + PREV_OBS_SIZE} floats > STATE_SIZE")
+            raise RuntimeError(f"{name}: state of {self.n + PREV_OBS_SIZE} floats > STATE_SIZE")
         self.initial = (self.read(), np.asarray(obs, np.float64))
 
     def read(self) -> np.ndarray:
@@ -125,9 +132,9 @@ def _get(env: int, variant: int) -> _Variant:
     key = (int(env), int(variant))
     v = _variants.get(key)
     if v is None:
-        if not (0 <= key[0] < len(ENV_NAMES) and 0 <= key[1] < NUM_VARIANTS):
+        if not (0 <= key[0] < NUM_ENVS and 0 <= key[1] < NUM_VARIANTS):
             raise ValueError(f"metaworld task (environment {key[0]}, goal index {key[1]}) does not exist; "
-                             f"environments 0-{len(ENV_NAMES) - 1}, goal indices 0-{NUM_VARIANTS - 1}")
+                             f"environments 0-{NUM_ENVS - 1} (3-5: the v1 reward), goal indices 0-{NUM_VARIANTS - 1}")
         v = _variants[key] = _Variant(*key)
         if len(_variants) > _CACHE_SIZE:
             _variants.popitem(last=False)
