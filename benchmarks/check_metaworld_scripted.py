@@ -9,7 +9,7 @@ episodes differ only by Gaussian action noise of std ``--noise`` (MetaWorld's ow
 every episode is the same. One line per task as ``key=value`` pairs, then one per environment.
 
     python benchmarks/check_metaworld_scripted.py [--tasks P-0 B-1 H-2 ...] [--episodes 10] [--noise 0.1] \
-        [--steps 150] [--reward v2|v1]
+        [--steps 150] [--reward v2|v1] [--trace K]
 
 Default tasks: the first 9 of the paper's sequence (P-0 … H-8) and the held-out ones (P-39 … H-47).
 """
@@ -39,8 +39,9 @@ def parse_task(text: str) -> tuple[int, int]:
 
 
 def episodes(env: int, goal: int, count: int, noise: float, seed: int, steps: int = host.MAX_STEPS,
-             reward: str = "v2") -> np.ndarray:
-    """Per episode: (any success step, first success step or -1, return) over ``steps`` steps."""
+             reward: str = "v2", trace: int = 0) -> np.ndarray:
+    """Per episode: (any success step, first success step or -1, return) over ``steps`` steps. ``trace`` > 0
+    prints the first episode's reward and MetaWorld's reward terms (its ``info``) every ``trace`` steps."""
     import metaworld.policies
     from metaworld.env_dict import ALL_V3_ENVIRONMENTS
 
@@ -64,6 +65,11 @@ def episodes(env: int, goal: int, count: int, noise: float, seed: int, steps: in
                 action = np.clip(action + noise * rng.standard_normal(action.shape), -1.0, 1.0)
                 obs, reward, _, _, info = e.step(action)
                 total += float(reward)
+                if trace and not out and t % trace == 0:
+                    terms = " ".join(f"{k}={float(v):.3f}" for k, v in info.items() if k != "unscaled_reward")
+                    print(f"trace task={host.LETTERS[env]}-{goal} step={t} reward={float(reward):.3f} {terms} "
+                          f"hand={','.join(f'{x:.3f}' for x in obs[:3])} gripper={obs[3]:.3f} "
+                          f"object={','.join(f'{x:.3f}' for x in obs[4:7])}", flush=True)
                 if first < 0 and info["success"] > 0:
                     first = t
             out.append((first >= 0, first, total))
@@ -79,14 +85,16 @@ def main():
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--steps", type=int, default=host.MAX_STEPS,
                         help=f"episode length (default: the family's T_max, {host.MAX_STEPS}; MetaWorld's own is 500)")
+    parser.add_argument("--trace", type=int, default=0, metavar="K",
+                        help="print the first episode's reward and MetaWorld's reward terms every K steps")
     parser.add_argument("--reward", choices=host.REWARD_VERSIONS, default="v2",
                         help="MetaWorld's reward function (v2: the family metaworld; v1: metaworld_v1)")
     args = parser.parse_args()
-    if args.episodes < 1 or args.steps < 1 or not args.noise >= 0:
-        sys.exit("--episodes and --steps must be >= 1, --noise >= 0")
+    if args.episodes < 1 or args.steps < 1 or not args.noise >= 0 or args.trace < 0:
+        sys.exit("--episodes and --steps must be >= 1, --noise and --trace >= 0")
     rates: dict = {}
     for env, goal in args.tasks:
-        r = episodes(env, goal, args.episodes, args.noise, args.seed, args.steps, args.reward)
+        r = episodes(env, goal, args.episodes, args.noise, args.seed, args.steps, args.reward, args.trace)
         name = f"{host.LETTERS[env]}-{goal}"
         rate = float(r[:, 0].mean())
         rates.setdefault(host.LETTERS[env], []).append(rate)
