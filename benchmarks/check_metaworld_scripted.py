@@ -99,7 +99,8 @@ def main():
         rate = float(r[:, 0].mean())
         rates.setdefault(host.LETTERS[env], []).append(rate)
         hit = r[r[:, 0] > 0, 1]
-        print(f"task={name} reward={args.reward} episodes={args.episodes} steps={args.steps} noise={args.noise} success_rate={rate:.2f} "
+        print(f"task={name} reward={args.reward} episodes={args.episodes} steps={args.steps} noise={args.noise} "
+              f"success_rate={rate:.2f} "
               f"reaches_threshold={rate >= family.SUCCESS_THRESHOLD} "
               f"first_success_step_median={float(np.median(hit)) if hit.size else -1:.0f} "
               f"mean_return={float(r[:, 2].mean()):.1f}", flush=True)

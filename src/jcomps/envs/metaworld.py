@@ -206,5 +206,6 @@ def make(reward: str = "v2") -> base.Family:
         held_out_values=HELD_OUT, value_range=(0.0, 100.0 * (len(host.ENV_NAMES) - 1) + host.NUM_VARIANTS - 1),
         value_name=(f"a task code 100·e + k: environment e (0 Push-Wall, 1 Button-Press-Wall, 2 Hammer) and goal "
                     f"index k (an integer 0-{host.NUM_VARIANTS - 1})"),
-        make_task=functools.partial(make_task, reward=reward), reset_fn=reset, step_fn=step, host_rollout=host_rollout,
+        make_task=functools.partial(make_task, reward=reward), reset_fn=reset, step_fn=step,
+        host_rollout=host_rollout,
     )
