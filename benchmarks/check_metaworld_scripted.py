@@ -17,7 +17,6 @@ Default tasks: the first 9 of the paper's sequence (P-0 … H-8) and the held-ou
 from __future__ import annotations
 
 import argparse
-import re
 import sys
 import warnings
 
@@ -30,12 +29,14 @@ POLICIES = {"P": "SawyerPushWallV3Policy", "B": "SawyerButtonPressWallV3Policy",
 
 
 def parse_task(text: str) -> tuple[int, int]:
-    """``P-3`` -> (0, 3): the environment index and goal index of a task named as in the paper."""
-    m = re.fullmatch(r"([PBH])-(\d+)", text)
-    if m is None or int(m.group(2)) >= host.NUM_VARIANTS:
-        raise argparse.ArgumentTypeError(f"a task is P-k, B-k or H-k with k in [0, {host.NUM_VARIANTS - 1}], "
-                                         f"got {text!r}")
-    return host.LETTERS.index(m.group(1)), int(m.group(2))
+    """``P-3`` (or the code 3) -> (0, 3): the environment index and goal index of a task, read as ``--tasks``
+    reads it (``MetaWorldFamily.parse_value``)."""
+    mw = family.make()
+    try:
+        value = int(mw.parse_values([text])[0])
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+    return divmod(value, 100)
 
 
 def episodes(env: int, goal: int, count: int, noise: float, seed: int, steps: int = host.MAX_STEPS,
