@@ -19,12 +19,13 @@ forward transfer its reference.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import shutil
 import sys
 
-from jcomps import distributed, report, results, rundir
+from jcomps import distributed, experiment, report, results, rundir
 from jcomps.checkpoint import RunError
 
 
@@ -35,15 +36,16 @@ def merged_description(descriptions: list) -> dict:
     first = descriptions[0][1]
     out = json.loads(json.dumps(first))
     out["run"]["methods"], out["methods"], overrides, chunks = [], {}, {}, {}
+    run_defaults = json.loads(json.dumps(dataclasses.asdict(experiment.RunConfig())))
     for d, desc in descriptions:
         for key in sorted(set(first) | set(desc)):
             if key in ("methods", "overrides", "processes"):  # results do not depend on the process count
                 continue
             a, b = first.get(key), desc.get(key)
             if key == "run":
-                # a run.json from before --tasks has the family's list: "tasks" []
-                a = {"tasks": [], **a, "methods": None, "chunk_tasks": None}
-                b = {"tasks": [], **b, "methods": None, "chunk_tasks": None}
+                # a run.json from before a field existed had its default (e.g. "tasks": the family's list)
+                a = {**run_defaults, **a, "methods": None, "chunk_tasks": None}
+                b = {**run_defaults, **b, "methods": None, "chunk_tasks": None}
             if a != b:
                 diff = rundir.differences({key: a}, {key: b})
                 raise RunError(f"{d} is not the same study as {dirs[0]}: " + "; ".join(diff[:4]))
