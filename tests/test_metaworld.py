@@ -3,6 +3,7 @@ that equals MetaWorld's own, reproducible rollouts, and the runner end to end (a
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import warnings
 
@@ -99,7 +100,9 @@ def test_the_v1_reward_family_names_the_same_tasks():
     task = v1.tasks(v1.parse_values(["P-3", "H-11"]))
     np.testing.assert_array_equal(task.env, [3, 5])  # host environments with the v1 reward
     np.testing.assert_array_equal(task.variant, [3, 11])
-    assert methods.default_config("ppo_tl", "metaworld_v1") == methods.default_config("ppo_tl", "metaworld")
+    v1_config, v2_config = (methods.default_config("ppo_tl", f) for f in ("metaworld_v1", "metaworld"))
+    assert (v1_config.ppo.reward_scale, v2_config.ppo.reward_scale) == (0.001, 0.1)  # v1's returns are 10^2-10^4 larger
+    assert dataclasses.replace(v1_config, ppo=dataclasses.replace(v1_config.ppo, reward_scale=0.1)) == v2_config
 
 
 def test_a_variant_starts_from_the_same_state_every_reset_and_variants_differ():
