@@ -230,6 +230,28 @@ def test_host_rollouts_equal_rollouts_stepped_through_the_family(family):
     assert not np.array_equal(fast.obs[0], fast.obs[1])
 
 
+def test_a_rollout_marked_inactive_is_not_run_and_the_others_are_unchanged(family):
+    """Inside ``acting.only_if`` (the RL loop's condition under vmap) the host skips the inactive members'
+    episodes (zeros come back) and runs the active ones exactly as without it."""
+    config = methods.default_config("ppo_tl", "metaworld").ppo
+    policies = jax.vmap(lambda k: ppo.init_params(config, family, k).policy)(jax.random.split(jax.random.PRNGKey(0)))
+    task = envs.task_at(family, 1)
+    keys = jax.random.split(jax.random.PRNGKey(3))
+
+    def rollout(p, k, active):
+        with acting.only_if(active):
+            return acting.rollout(family, p, task, k, 2)
+
+    both = jax.jit(jax.vmap(lambda p, k: acting.rollout(family, p, task, k, 2)))(policies, keys)
+    first = jax.jit(jax.vmap(rollout))(policies, keys, jnp.array([True, False]))
+    for field in ("obs", "action", "log_prob", "reward", "success", "last_obs"):
+        np.testing.assert_array_equal(getattr(first, field)[0], getattr(both, field)[0], err_msg=field)
+        np.testing.assert_array_equal(getattr(first, field)[1], 0.0, err_msg=field)
+    assert np.all(np.abs(both.obs[1]).sum(-1) > 0)  # a run episode has no all-zero observation
+    none = jax.jit(jax.vmap(rollout))(policies, keys, jnp.array([False, False]))
+    np.testing.assert_array_equal(none.obs, 0.0)
+
+
 def test_every_twin_rolls_out_like_its_jax_act(family):
     """Each actor with a NumPy twin (PEARL's with a per-episode z) takes, in a host rollout, the steps its JAX act
     takes through ``family.step``, to float32 rounding (the first 10 steps)."""

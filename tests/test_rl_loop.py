@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from hypothesis import given, strategies as st
 
-from jcomps import progress, rl_loop
+from jcomps import acting, progress, rl_loop
 
 BUDGET = 6
 THRESHOLD = 0.9
@@ -230,3 +230,37 @@ def test_empty_metrics_are_zeros_not_run():
         chex.assert_shape(field, (BUDGET,))
         np.testing.assert_array_equal(field, 0)
     assert metrics.valid.dtype == jnp.bool_
+
+
+def test_under_vmap_a_stopped_members_rollouts_are_marked_inactive_and_its_progress_dropped():
+    """A vmapped loop runs the body for every member until all have stopped: collections traced inside see the
+    member's loop condition (``acting.only_if``: host-simulated rollouts skip the stopped members) and the
+    stopped members' progress calls are dropped."""
+    actives, seen = [], []
+
+    def run(s, rng):
+        collect, update = _fakes(s)
+
+        def watching(learner, aux, keys, it):  # what a rollout traced here would be told
+            jax.debug.callback(lambda a, i, n: actives.append((int(n), int(i), bool(a))), acting._ACTIVE[-1], it,
+                               learner.collected)
+            return collect(learner, aux, keys, it)
+
+        learner, aux = _start(1)
+        out = rl_loop.iterate(watching, update, learner, rng, threshold=THRESHOLD, budget=BUDGET, aux=aux,
+                              progress_fn=progress.host(seen.append))
+        return out.iterations
+
+    curves = jnp.asarray([[0.95, 0, 0, 0, 0, 0], [0.1, 0.2, 0.95, 0, 0, 0]], jnp.float32)  # stop after 1 and 3
+    s = jax.vmap(script)(curves)
+    iterations = jax.block_until_ready(jax.jit(jax.vmap(run, (0, None)))(s, jax.random.PRNGKey(0)))
+    jax.effects_barrier()
+    np.testing.assert_array_equal(iterations, [1, 3])
+    assert not acting._ACTIVE  # the context is left as found
+    # (collections made, iteration, active): three bodies ran for both members; member 0, stopped after its
+    # first, ran the last two from its final carry, inactive
+    assert sorted(actives) == [(0, 0, True), (0, 0, True), (1, 1, False), (1, 1, False), (1, 1, True),
+                               (2, 2, True)]
+    assert sorted((round(float(m["success_rate"]), 2), int(m["iteration"])) for m in seen) == [
+        (0.1, 1), (0.2, 2), (0.95, 1), (0.95, 3)]
+    assert all("active" not in m for m in seen)

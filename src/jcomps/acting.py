@@ -5,6 +5,7 @@ Array convention (everywhere in jcomps): trajectories are time-major, ``[T, B, .
 
 from __future__ import annotations
 
+import contextlib
 from typing import Any, Callable, NamedTuple, Optional
 
 import jax
@@ -65,17 +66,36 @@ GAUSSIAN = actor_of(networks.GAUSSIAN)
 """The Gaussian MLP policy's ``Actor`` (the PPO-based methods'; PEARL's tanh-Gaussian has its own)."""
 
 
+_ACTIVE: list = []
+
+
+@contextlib.contextmanager
+def only_if(active: jax.Array):
+    """Rollouts traced inside are needed only where ``active`` (a traced bool scalar) is True: elsewhere the
+    caller discards them. ``rl_loop.iterate`` sets it to its loop condition: a batched (vmapped) while loop runs its
+    body for every member until all have stopped and throws away the stopped members' results, so a family
+    simulated on the host (``Family.host_rollout``) skips their episodes. Nested uses combine (and)."""
+    _ACTIVE.append(active if not _ACTIVE else _ACTIVE[-1] & active)
+    try:
+        yield
+    finally:
+        _ACTIVE.pop()
+
+
 def rollout(family: Family, policy: Any, task, rng: jax.Array, num_envs: int, actor: Actor = GAUSSIAN) -> Trajectory:
     """Runs ``num_envs`` fresh episodes of ``task`` for ``family.max_steps`` steps with ``policy``, acting by
     ``actor`` (default: the Gaussian MLP policy's).
 
     A family simulated on the host (``family.host_rollout``) runs the whole rollout there when the actor has a
-    NumPy twin (``actor.host_kind``, see ``jcomps.host_acting``); the policy's noise is drawn here either way.
+    NumPy twin (``actor.host_kind``, see ``jcomps.host_acting``); the policy's noise is drawn here either way. Inside
+    ``only_if(active)`` the host skips the rollout where ``active`` is False and returns zeros.
     """
     reset_rng, step_rng = jax.random.split(rng)
     if family.host_rollout is not None and actor.host_kind is not None:
         noise = jax.random.normal(step_rng, (family.max_steps, num_envs, family.action_size), jnp.float32)
-        obs, action, log_prob, reward, success, last_obs = family.host_rollout(actor.host_kind, policy, task, noise)
+        active = _ACTIVE[-1] if _ACTIVE else jnp.array(True)
+        obs, action, log_prob, reward, success, last_obs = family.host_rollout(actor.host_kind, policy, task, noise,
+                                                                               active)
         zeros = jnp.zeros(reward.shape, jnp.float32)  # the host families never terminate (time limits truncate)
         return Trajectory(obs, action, log_prob, reward, zeros, zeros + 1.0, success, last_obs)
     state = jax.vmap(family.reset, (0, None))(jax.random.split(reset_rng, num_envs), task)

@@ -367,7 +367,7 @@ def heldout_adaptation(method: Method, eval_config: EvalConfig, state, heldout_t
         if progress_fn is not None:
             report = lambda m: progress_fn({"phase": progress.HELDOUT_ITERATION, "heldout_task": j,  # noqa: E731
                                             "heldout_iteration": m["iteration"], "success_rate": m["success_rate"],
-                                            "mean_return": m["mean_return"]})
+                                            "mean_return": m["mean_return"], "active": m["active"]})
         # Iterations after the curve's end and after the first success change nothing reported: left unrun.
         out = ppo.rl_step(config, method.family, params, optimizer.init(params), task, key, stop_at_threshold=False,
                           budget=eval_config.heldout_run, run_at_least=curve, progress_fn=report)

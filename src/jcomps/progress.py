@@ -19,6 +19,10 @@ one entry that is not an array; ``host`` passes it through unchanged), and carri
 - ``TASK``, after every task of the continual loop (``continual.run_tasks``): ``task``, ``task_iterations``,
   ``solved``.
 
+``ITERATION`` and ``HELDOUT_ITERATION`` also carry ``active``: False where the call comes from a member whose loop
+has stopped (a vmapped ``while_loop`` runs its body for every member until all have stopped, and discards the
+stopped members' results); ``host`` drops those calls.
+
 Because the hook runs at trace level, a caller can close it over traced values of its own (the runner closes it
 over each member's index under ``vmap``) without the methods knowing about members.
 """
@@ -41,11 +45,17 @@ PHASES = (ITERATION, META_STEP, COMPRESS_ITERATION, HELDOUT_ITERATION, TASK)
 
 def host(fn: Callable[[dict], None]) -> ProgressFn:
     """A ProgressFn that calls the host function ``fn(metrics)`` with numpy values (``jax.debug.callback``;
-    under ``vmap`` once per batch element, in no fixed order); string entries (``phase``) are passed as they are."""
+    under ``vmap`` once per batch element, in no fixed order); string entries (``phase``) are passed as they are.
+    Calls whose ``active`` is False (a stopped member's) are dropped; ``active`` itself is not passed on."""
     def call(metrics: dict) -> None:
         static = {k: v for k, v in metrics.items() if isinstance(v, str)}
         arrays = {k: v for k, v in metrics.items() if not isinstance(v, str)}
-        jax.debug.callback(lambda values: fn({**static, **values}), arrays)
+
+        def send(values):
+            if values.pop("active", True):
+                fn({**static, **values})
+
+        jax.debug.callback(send, arrays)
 
     return call
 

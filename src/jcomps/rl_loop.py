@@ -21,7 +21,7 @@ from typing import Any, Callable, NamedTuple, Optional
 import jax
 import jax.numpy as jnp
 
-from jcomps import progress
+from jcomps import acting, progress
 from jcomps.numerics import all_finite
 from jcomps.progress import ProgressFn
 
@@ -174,11 +174,15 @@ def iterate(collect: CollectFn, update: UpdateFn, state, rng: jax.Array, *, thre
 
     def body(c: _Carry):
         keys = jax.random.split(c.rng, 2 + collect_keys)
-        state, aux, col = collect(c.state, c.aux, tuple(keys[1:-1]), c.it)
+        # Under vmap the loop runs this body for every member until all have stopped, discarding the stopped
+        # members' results: their host-simulated rollouts are skipped and their progress events dropped.
+        active = cond(c)
+        with acting.only_if(active):
+            state, aux, col = collect(c.state, c.aux, tuple(keys[1:-1]), c.it)
         solved = c.solved | (col.success_rate >= threshold)  # reached at this or an earlier iteration
         if progress_fn is not None:
             progress_fn({"phase": progress.ITERATION, "iteration": c.it + 1, "success_rate": col.success_rate,
-                         "mean_return": col.mean_return})
+                         "mean_return": col.mean_return, "active": active})
 
         def learn(state):
             return update(state, col.batch, keys[-1])

@@ -94,10 +94,12 @@ class Family:
       system: the brax ``System`` the MuJoCo families simulate (``EnvState.sim`` is its pipeline state), for
         rendering with ``brax.io.html``; None for Point Goal.
       host_rollout: for a family simulated on the host (MetaWorld), whole rollouts run there:
-        ``host_rollout(kind, policy, task, noise f32[T, B, A]) -> (obs f32[T, B, O], action f32[T, B, A],
-        log_prob f32[T, B], reward f32[T, B], success f32[T, B], last_obs f32[B, O])`` with the policy evaluated
-        by its NumPy twin ``kind`` (``jcomps.host_acting``). ``acting.rollout`` uses it when the ``act`` has a
-        twin, and steps through ``step`` otherwise. None: rollouts always step through ``step``.
+        ``host_rollout(kind, policy, task, noise f32[T, B, A], active bool[]) -> (obs f32[T, B, O], action
+        f32[T, B, A], log_prob f32[T, B], reward f32[T, B], success f32[T, B], last_obs f32[B, O])`` with the
+        policy evaluated by its NumPy twin ``kind`` (``jcomps.host_acting``); where ``active`` is False the result
+        is discarded (``acting.only_if``), so the host may skip it and return zeros. ``acting.rollout`` uses it
+        when the ``act`` has a twin, and steps through ``step`` otherwise. None: rollouts always step through
+        ``step``.
     """
 
     name: str

@@ -130,39 +130,48 @@ def step(state: base.EnvState, action: jax.Array, task: MetaWorldTask) -> base.E
     return base.make_env_state(sim, obs, reward, 0.0, success, state.t)
 
 
-def _host_rollout(kind, policy, env, variant, noise):
-    """The callback of ``host_rollout``: arguments with the leading axes of any vmaps (``broadcast_all``)."""
+def _host_rollout(kind, policy, env, variant, noise, active):
+    """The callback of ``host_rollout``: arguments with the leading axes of any vmaps (``broadcast_all``). Groups
+    (one policy and task each) whose ``active`` is False are not stepped: their outputs are zeros."""
     noise = np.asarray(noise, np.float32)
     lead, (steps, batch, actions) = noise.shape[:-3], noise.shape[-3:]
     groups = int(np.prod(lead, dtype=np.int64))
+    run = np.flatnonzero(np.broadcast_to(np.asarray(active, bool), lead).reshape(groups))
     flat = host_acting.plain(jax.tree.map(lambda x: np.asarray(x).reshape((groups, *np.shape(x)[len(lead):])),
                                           policy))
-    policies = [jax.tree.map(lambda x, g=g: x[g], flat) for g in range(groups)]
-    env, variant = (np.asarray(x, np.int64).reshape(groups) for x in (env, variant))
-    # Episodes group-major: episode g·B + b is episode b of group g (one policy and task per group).
-    obs, action, log_prob, reward, success = pool().rollout(
-        kind, policies, np.repeat(np.arange(groups), batch), np.tile(np.arange(batch), groups),
-        np.repeat(env, batch), np.repeat(variant, batch),
-        noise.reshape(groups, steps, batch, actions).swapaxes(1, 2).reshape(groups * batch, steps, actions))
+    policies = [jax.tree.map(lambda x, g=g: x[g], flat) for g in run]
+    env, variant = (np.asarray(x, np.int64).reshape(groups)[run] for x in (env, variant))
+    noise = noise.reshape(groups, steps, batch, actions)[run]
+    # Episodes group-major: episode g·B + b is episode b of the g-th group run (one policy and task per group).
+    outs = (np.zeros((groups, batch, steps + 1, host.OBS_SIZE), np.float32),
+            np.zeros((groups, batch, steps, actions), np.float32), *(np.zeros((groups, batch, steps), np.float32)
+                                                                       for _ in range(3)))
+    if len(run):
+        got = pool().rollout(kind, policies, np.repeat(np.arange(len(run)), batch), np.tile(np.arange(batch), len(run)),
+                             np.repeat(env, batch), np.repeat(variant, batch),
+                             noise.swapaxes(1, 2).reshape(len(run) * batch, steps, actions))
+        for out, x in zip(outs, got):
+            out[run] = x.reshape(len(run), batch, *x.shape[1:])
 
-    def time_major(x):  # [G·B, T, ...] -> [*lead, T, B, ...]
-        x = x.reshape(groups, batch, *x.shape[1:]).swapaxes(1, 2)
-        return np.ascontiguousarray(x).reshape(*lead, *x.shape[1:])
+    def time_major(x):  # [G, B, T, ...] -> [*lead, T, B, ...]
+        return np.ascontiguousarray(x.swapaxes(1, 2)).reshape(*lead, x.shape[2], batch, *x.shape[3:])
 
+    obs, action, log_prob, reward, success = outs
     obs = time_major(obs)
     return (obs[..., :steps, :, :], time_major(action), time_major(log_prob), time_major(reward),
             time_major(success), np.ascontiguousarray(obs[..., steps, :, :]))
 
 
-def host_rollout(kind: str, policy, task: MetaWorldTask, noise: jax.Array):
+def host_rollout(kind: str, policy, task: MetaWorldTask, noise: jax.Array, active=True):
     """``Family.host_rollout``: whole episodes on the host (``metaworld_host.rollout`` over the pool), the policy
-    evaluated by its NumPy twin ``kind``; one callback per rollout (per step: ``step``)."""
+    evaluated by its NumPy twin ``kind``; one callback per rollout (per step: ``step``). Not run where ``active``
+    (bool) is False: zeros."""
     steps, batch, actions = noise.shape
     f32 = functools.partial(jax.ShapeDtypeStruct, dtype=jnp.float32)
     shapes = (f32((steps, batch, host.OBS_SIZE)), f32((steps, batch, actions)), f32((steps, batch)),
               f32((steps, batch)), f32((steps, batch)), f32((batch, host.OBS_SIZE)))
     return jax.pure_callback(functools.partial(_host_rollout, kind), shapes, policy, task.env, task.variant,
-                             noise, vmap_method="broadcast_all")
+                             noise, jnp.asarray(active, bool), vmap_method="broadcast_all")
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
