@@ -103,6 +103,9 @@ def test_the_v1_reward_family_names_the_same_tasks():
     v1_config, v2_config = (methods.default_config("ppo_tl", f) for f in ("metaworld_v1", "metaworld"))
     assert (v1_config.ppo.reward_scale, v2_config.ppo.reward_scale) == (0.001, 0.1)  # v1's returns are 10^2-10^4 larger
     assert dataclasses.replace(v1_config, ppo=dataclasses.replace(v1_config.ppo, reward_scale=0.1)) == v2_config
+    # every reward scale takes the same factor, PEARL's own too
+    v1_pearl, v2_pearl = (methods.default_config("pearl", f) for f in ("metaworld_v1", "metaworld"))
+    assert v1_pearl.reward_scale == pytest.approx(0.01 * v2_pearl.reward_scale)
 
 
 def test_a_variant_starts_from_the_same_state_every_reset_and_variants_differ():
@@ -250,6 +253,17 @@ def test_a_rollout_marked_inactive_is_not_run_and_the_others_are_unchanged(famil
     assert np.all(np.abs(both.obs[1]).sum(-1) > 0)  # a run episode has no all-zero observation
     none = jax.jit(jax.vmap(rollout))(policies, keys, jnp.array([False, False]))
     np.testing.assert_array_equal(none.obs, 0.0)
+
+    def nested(p, k, outer, inner):  # nested contexts combine: a member runs only where both hold
+        with acting.only_if(outer):
+            with acting.only_if(inner):
+                return acting.rollout(family, p, task, k, 2)
+
+    nested_fn = jax.jit(jax.vmap(nested))
+    same = nested_fn(policies, keys, jnp.array([True, True]), jnp.array([True, False]))
+    np.testing.assert_array_equal(same.obs, first.obs)
+    crossed = nested_fn(policies, keys, jnp.array([True, False]), jnp.array([False, True]))
+    np.testing.assert_array_equal(crossed.obs, 0.0)
 
 
 def test_every_twin_rolls_out_like_its_jax_act(family):

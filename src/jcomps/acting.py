@@ -6,6 +6,7 @@ Array convention (everywhere in jcomps): trajectories are time-major, ``[T, B, .
 from __future__ import annotations
 
 import contextlib
+import threading
 from typing import Any, Callable, NamedTuple, Optional
 
 import jax
@@ -66,7 +67,13 @@ GAUSSIAN = actor_of(networks.GAUSSIAN)
 """The Gaussian MLP policy's ``Actor`` (the PPO-based methods'; PEARL's tanh-Gaussian has its own)."""
 
 
-_ACTIVE: list = []
+_ACTIVE = threading.local()  # .stack: the traced conditions of the enclosing only_if contexts (per tracing thread)
+
+
+def _active_stack() -> list:
+    if not hasattr(_ACTIVE, "stack"):
+        _ACTIVE.stack = []
+    return _ACTIVE.stack
 
 
 @contextlib.contextmanager
@@ -75,11 +82,12 @@ def only_if(active: jax.Array):
     caller discards them. ``rl_loop.iterate`` sets it to its loop condition: a batched (vmapped) while loop runs its
     body for every member until all have stopped and throws away the stopped members' results, so a family
     simulated on the host (``Family.host_rollout``) skips their episodes. Nested uses combine (and)."""
-    _ACTIVE.append(active if not _ACTIVE else _ACTIVE[-1] & active)
+    stack = _active_stack()
+    stack.append(active if not stack else stack[-1] & active)
     try:
         yield
     finally:
-        _ACTIVE.pop()
+        stack.pop()
 
 
 def rollout(family: Family, policy: Any, task, rng: jax.Array, num_envs: int, actor: Actor = GAUSSIAN) -> Trajectory:
@@ -93,7 +101,8 @@ def rollout(family: Family, policy: Any, task, rng: jax.Array, num_envs: int, ac
     reset_rng, step_rng = jax.random.split(rng)
     if family.host_rollout is not None and actor.host_kind is not None:
         noise = jax.random.normal(step_rng, (family.max_steps, num_envs, family.action_size), jnp.float32)
-        active = _ACTIVE[-1] if _ACTIVE else jnp.array(True)
+        stack = _active_stack()
+        active = stack[-1] if stack else jnp.array(True)
         obs, action, log_prob, reward, success, last_obs = family.host_rollout(actor.host_kind, policy, task, noise,
                                                                                active)
         zeros = jnp.zeros(reward.shape, jnp.float32)  # the host families never terminate (time limits truncate)

@@ -122,9 +122,11 @@ register("ant_dir", _mujoco("ant_dir"), {
 register("metaworld", _metaworld(), {"ppo": dict(_MUJOCO_PPO), "meta": {"inner_learning_rate": 0.0025}})
 # The same tasks with MetaWorld v1's original reward (issue 32 measures both; docs/families.md): its returns are
 # 10^2-10^4 times v2's (up to ~170,000 per episode), so the reward scale is 0.001 (on Hammer, 0.001 learnt further
-# than 0.01 at either initial std; 0.1 puts value targets in the thousands).
+# than 0.01 at either initial std; 0.1 puts value targets in the thousands). PEARL's scale (5 on the v2 reward,
+# its default) takes the same factor, 0.01: not measured on this family.
 register("metaworld_v1", _metaworld("v1"), {"ppo": {**_MUJOCO_PPO, "reward_scale": 0.001},
-                                            "meta": {"inner_learning_rate": 0.0025}})
+                                            "meta": {"inner_learning_rate": 0.0025},
+                                            "pearl": {"reward_scale": 0.05}})
 
 FAMILIES = names()
 """The families jcomps ships (``names()`` also lists any registered since)."""

@@ -194,6 +194,10 @@ class MetaWorldFamily(base.Family):
             raise ValueError(f"{self.name}: task {text!r} does not exist; goal indices are 0-{host.NUM_VARIANTS - 1}")
         return float(code(host.LETTERS.index(m.group(1)), int(m.group(2))))
 
+    def task_name(self, value: float) -> str:
+        """The paper's name of a task code, e.g. ``B-2`` for 102."""
+        return label(value)
+
     def tasks(self, values):
         arr = base.validate_values(self, values)
         for v in arr:
@@ -205,7 +209,8 @@ class MetaWorldFamily(base.Family):
 def make(reward: str = "v2") -> base.Family:
     """The family with MetaWorld's reward function ``reward``: "v2" (``metaworld``, the v3 environments' default,
     the reward of the v2 environments the paper used) or "v1" (``metaworld_v1``, MetaWorld v1's original reward;
-    the same tasks, observations, success and rules)."""
+    the same tasks, observations and rules; success is MetaWorld's rule for each version, which differ only on
+    Push-Wall: v1 measures the puck's distance to the goal in the plane, v2 in 3-D, and the two sit at one height)."""
     if reward not in host.REWARD_VERSIONS:
         raise ValueError(f"metaworld reward: {reward!r} is not one of {', '.join(host.REWARD_VERSIONS)}")
     return MetaWorldFamily(
