@@ -141,6 +141,13 @@ def parse_args(argv=None):
     available = len(args.run.tasks or envs.make(args.run.family).task_values)
     if args.run.num_tasks > available:
         parser.error(f"--num-tasks must be in [1, {available}] for {args.run.family}, got {args.run.num_tasks}")
+    if args.run.tasks and not args.resume:
+        family = envs.make(args.run.family)
+        held = {family.task_name(v) for v in family.held_out_values}
+        if any(t in held for t in args.run.tasks):
+            print(f"warning: --tasks {' '.join(t for t in args.run.tasks if t in held)}: held out by {family.name} "
+                  f"(its meta-test tasks); the held-out results of this run are not of unseen tasks", file=sys.stderr,
+                  flush=True)
     for name, config in args.configs.items():
         for point in args.points[name]:
             max_tasks = methods.task_slots(point.config)
@@ -194,6 +201,8 @@ def _from_stored(args):
     with open(path) as f:
         stored = json.load(f)
     args.stored = stored
+    if args.cfg_tasks and args.cfg_num_tasks is None:  # --tasks given again alone: as many tasks as given, so that
+        args.cfg_num_tasks = len(args.cfg_tasks)       # a different list is refused as such (rundir), not by count
     args.run = cli.config_from_dict(experiment.RunConfig(), stored["run"], args)
     args.eval = cli.config_from_dict(continual.EvalConfig(), stored["eval"], args)
     # Each method's stored config over its registered default on the family (a field missing from an older run.json

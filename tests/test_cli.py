@@ -160,13 +160,15 @@ def test_bad_set_exits_2_naming_it(runner, spec, message, capsys):
     assert message in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("family,tasks,values", [
-    ("point_goal", ["10", "-45.5"], [10.0, -45.5]),
-    ("metaworld", ["P-3", "H-11", "102"], [3.0, 211.0, 102.0]),
+@pytest.mark.parametrize("family,tasks,values,names", [
+    ("point_goal", ["10.0", "-45.5", "12.50"], [10.0, -45.5, 12.5], ("10", "-45.5", "12.5")),
+    ("metaworld", ["P-3", "H-11", "102"], [3.0, 211.0, 102.0], ("P-3", "H-11", "B-2")),
 ])
-def test_tasks_option_takes_the_familys_own_terms(runner, family, tasks, values):
+def test_tasks_option_takes_the_familys_own_terms(runner, family, tasks, values, names, capsys):
+    """Tasks are read in the family's terms and kept by canonical name (one run however they were written)."""
     args = runner.parse_args(["--family", family, "--tasks", *tasks, "--out", "/nonexistent/x"])
-    assert args.run.tasks == tuple(tasks) and args.run.num_tasks == len(tasks)
+    assert args.run.tasks == names and args.run.num_tasks == len(tasks)
+    assert "warning" not in capsys.readouterr().err
     np.testing.assert_array_equal(envs.sequence_values(family, "non-stationary", 0, len(tasks), args.run.tasks),
                                   values)
     # stationary: the chosen tasks shuffled by the seed
@@ -174,10 +176,17 @@ def test_tasks_option_takes_the_familys_own_terms(runner, family, tasks, values)
     assert all(sorted(s) == sorted(values) for s in shuffled) and len({tuple(s) for s in shuffled}) > 1
 
 
+def test_a_chosen_held_out_task_is_warned_about(runner, capsys):
+    args = runner.parse_args(["--family", "metaworld", "--tasks", "P-0", "P-39", "--out", "/nonexistent/x"])
+    assert args.run.tasks == ("P-0", "P-39")
+    err = capsys.readouterr().err
+    assert "warning: --tasks P-39: held out by metaworld" in err and "P-0" not in err
+
+
 @pytest.mark.parametrize("argv,message", [
     (["--tasks", "abc"], "task 'abc' is not a number"),
     (["--tasks", "720"], "720.0 is out of range"),
-    (["--tasks", "10", "20", "--num-tasks", "3"], "num_tasks=3; allowed: the number of tasks given (2)"),
+    (["--tasks", "10", "20", "--num-tasks", "3"], "num_tasks=3; allowed: the number of tasks given (2;"),
     (["--family", "metaworld", "--tasks", "P-50"], "goal indices are 0-49"),
     (["--family", "metaworld", "--tasks", "Q-3"], "or its name P-k, B-k or H-k"),
     (["--family", "metaworld", "--tasks", "2.5"], "2.5 is not a task"),

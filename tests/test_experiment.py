@@ -450,6 +450,8 @@ def test_chosen_tasks_are_learnt_recorded_and_checked_on_resume(runner, full_run
     assert info.value.code == 2 and "tasks" in capsys.readouterr().err
     runner.main(["--out", str(out), "--resume"])
     assert "already finished" in capsys.readouterr().out
+    runner.main(["--out", str(out), "--resume", "--tasks", *[f"{float(t):.2f}" for t in chosen]])  # written otherwise
+    assert "already finished" in capsys.readouterr().out
     # The same tasks in another order are another run: the chosen list, not the family's, reaches the programs.
     other = tmp_path / "reordered"
     runner.main(full_run_argv + ["--methods", "ppo_tl", "--tasks", *chosen[::-1], "--out", str(other)])

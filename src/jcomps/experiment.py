@@ -80,11 +80,15 @@ class RunConfig:
         check_field(self.num_tasks >= 1, "num_tasks", self.num_tasks, "an integer >= 1")
         if self.tasks:
             check_field(self.num_tasks == len(self.tasks), "num_tasks", self.num_tasks,
-                        f"the number of tasks given ({len(self.tasks)}), or leave it out")
+                        f"the number of tasks given ({len(self.tasks)}; the command line sets it when "
+                        f"--num-tasks is left out)")
+            family = envs.make(self.family)
             try:
-                envs.make(self.family).parse_values(self.tasks)
+                family.parse_values(self.tasks)
             except ValueError as err:
                 raise ValueError(f"tasks: {err}") from None
+            # kept by canonical name, so that "10.0" and "10", or "102" and "B-2", are one run (resume, merge)
+            object.__setattr__(self, "tasks", tuple(family.task_name(family.parse_value(t)) for t in self.tasks))
         check_field(self.chunk_tasks >= 1, "chunk_tasks", self.chunk_tasks, "an integer >= 1")
 
 

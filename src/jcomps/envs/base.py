@@ -165,6 +165,13 @@ class Family:
         except (TypeError, ValueError):
             raise ValueError(f"{self.name}: task {text!r} is not a number; a task is {self.value_name}") from None
 
+    def task_name(self, value: float) -> str:
+        """The canonical name of a task parameter value (what ``parse_value`` reads back to it): the shortest of
+        ``%g`` and ``repr`` that is exact, e.g. ``10`` for "10.0", ``-45.5``."""
+        value = float(value)
+        short = f"{value:g}"
+        return short if float(short) == value else repr(value)
+
     def parse_values(self, texts) -> np.ndarray:
         """``parse_value`` of each name, checked to be tasks of the family (``tasks``): f32[len(texts)]."""
         values = np.asarray([self.parse_value(t) for t in texts], np.float32)
