@@ -242,7 +242,7 @@ def test_under_vmap_a_stopped_members_rollouts_are_marked_inactive_and_its_progr
         collect, update = _fakes(s)
 
         def watching(learner, aux, keys, it):  # what a rollout traced here would be told
-            jax.debug.callback(lambda a, i, n: actives.append((int(n), int(i), bool(a))), acting._ACTIVE[-1], it,
+            jax.debug.callback(lambda a, i, n: actives.append((int(n), int(i), bool(a))), acting._active_stack()[-1], it,
                                learner.collected)
             return collect(learner, aux, keys, it)
 
@@ -256,7 +256,7 @@ def test_under_vmap_a_stopped_members_rollouts_are_marked_inactive_and_its_progr
     iterations = jax.block_until_ready(jax.jit(jax.vmap(run, (0, None)))(s, jax.random.PRNGKey(0)))
     jax.effects_barrier()
     np.testing.assert_array_equal(iterations, [1, 3])
-    assert not acting._ACTIVE  # the context is left as found
+    assert not acting._active_stack()  # the context is left as found
     # (collections made, iteration, active): three bodies ran for both members; member 0, stopped after its
     # first, ran the last two from its final carry, inactive
     assert sorted(actives) == [(0, 0, True), (0, 0, True), (1, 1, False), (1, 1, False), (1, 1, True),
