@@ -138,11 +138,11 @@ def parse_args(argv=None):
         parser.error(str(err))
     if args.baseline is not None and args.baseline not in args.run.methods:
         parser.error(f"--baseline {args.baseline}: not one of --methods ({', '.join(args.run.methods)})")
-    available = len(args.run.tasks or envs.make(args.run.family).task_values)
+    family = envs.make(args.run.family)
+    available = len(args.run.tasks or family.task_values)
     if args.run.num_tasks > available:
         parser.error(f"--num-tasks must be in [1, {available}] for {args.run.family}, got {args.run.num_tasks}")
     if args.run.tasks and not args.resume:
-        family = envs.make(args.run.family)
         held = {family.task_name(v) for v in family.held_out_values}
         if any(t in held for t in args.run.tasks):
             print(f"warning: --tasks {' '.join(t for t in args.run.tasks if t in held)}: held out by {family.name} "
@@ -178,9 +178,15 @@ def _grid(args):
     args.points = {name: grids.points(name, args.configs[name], args.grid) for name in args.run.methods}
 
 
-def _from_options(args):
-    if args.cfg_tasks and args.cfg_num_tasks is None:  # --tasks alone: as many tasks as given
+def _count_chosen_tasks(args):
+    """--tasks without --num-tasks: as many tasks as given (on --resume too, so that a different list is refused as
+    such by the run directory's check, not by its count)."""
+    if args.cfg_tasks and args.cfg_num_tasks is None:
         args.cfg_num_tasks = len(args.cfg_tasks)
+
+
+def _from_options(args):
+    _count_chosen_tasks(args)
     args.run = cli.build_config(experiment.RunConfig, args)
     args.eval = cli.build_config(continual.EvalConfig, args)
     # Each method's config from its layers (methods.resolve_config): its registered default on the family, the
@@ -201,8 +207,7 @@ def _from_stored(args):
     with open(path) as f:
         stored = json.load(f)
     args.stored = stored
-    if args.cfg_tasks and args.cfg_num_tasks is None:  # --tasks given again alone: as many tasks as given, so that
-        args.cfg_num_tasks = len(args.cfg_tasks)       # a different list is refused as such (rundir), not by count
+    _count_chosen_tasks(args)
     args.run = cli.config_from_dict(experiment.RunConfig(), stored["run"], args)
     args.eval = cli.config_from_dict(continual.EvalConfig(), stored["eval"], args)
     # Each method's stored config over its registered default on the family (a field missing from an older run.json

@@ -242,8 +242,8 @@ def test_under_vmap_a_stopped_members_rollouts_are_marked_inactive_and_its_progr
         collect, update = _fakes(s)
 
         def watching(learner, aux, keys, it):  # what a rollout traced here would be told
-            jax.debug.callback(lambda a, i, n: actives.append((int(n), int(i), bool(a))), acting._active_stack()[-1], it,
-                               learner.collected)
+            jax.debug.callback(lambda a, i, n: actives.append((int(n), int(i), bool(a))),
+                               acting._active_stack()[-1], it, learner.collected)
             return collect(learner, aux, keys, it)
 
         learner, aux = _start(1)
