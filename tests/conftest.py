@@ -13,6 +13,13 @@ thread pool), so the runner's sharding of seeds over devices is tested in-proces
 The runner's persistent compile cache is off in tests (``JCOMPS_COMPILE_CACHE=none``, unless set otherwise), so
 the suite writes nothing under the user's cache home and every run compiles what it tests;
 ``tests/test_compile_cache.py`` tests the cache in directories of its own.
+
+Programs compile with most of XLA's optimisation off (``JAX_DISABLE_MOST_OPTIMIZATIONS=1`` unless set otherwise,
+inherited by the processes the tests start): compiling dominates the suite's time and the tests' programs are
+tiny, so this halves the suite on 2 cores (19 to 9.5 minutes measured). It changes which float operations are
+fused, not what a program computes; ``tests/test_envs.py`` compiles its MJX rollouts fully optimised, as users run
+them, because its batched-against-unbatched tolerance was measured so. ``JAX_DISABLE_MOST_OPTIMIZATIONS=0`` runs the
+whole suite optimised (it passes that way too).
 """
 
 import importlib.util
@@ -22,6 +29,7 @@ import pathlib
 from jcomps import hostdevices
 
 os.environ.setdefault("JCOMPS_COMPILE_CACHE", "none")
+os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
 
 if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", ""):
     hostdevices.configure(2)
@@ -33,6 +41,9 @@ import pytest  # noqa: E402
 from hypothesis import settings  # noqa: E402
 
 jax.config.update("jax_default_matmul_precision", "highest")
+# The variable is read when JAX is imported; a plugin may have imported it first.
+jax.config.update("jax_disable_most_optimizations",
+                  os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"].lower() in ("1", "true", "t", "yes", "y", "on"))
 
 settings.register_profile("fast", deadline=None, max_examples=25)
 settings.register_profile("thorough", deadline=None, max_examples=500)
