@@ -17,8 +17,8 @@ the suite writes nothing under the user's cache home and every run compiles what
 Programs compile with most of XLA's optimisation off (``JAX_DISABLE_MOST_OPTIMIZATIONS=1`` unless set otherwise,
 inherited by the processes the tests start): compiling dominates the suite's time and the tests' programs are
 tiny, so this cuts the suite's time by a third to a half on 2 cores (19m01 to 9m30 measured back to back; one
-file, A against B at another hour, 30–45%). It changes which float operations are
-fused, not what a program computes; ``tests/test_envs.py`` compiles its MJX rollouts fully optimised, as users run
+file, the two ways back to back at another hour, 30–45%). It changes which float operations are fused, not what
+a program computes; ``tests/test_envs.py`` compiles its MJX rollouts fully optimised, as users run
 them, because its batched-against-unbatched tolerance was measured so. ``JAX_DISABLE_MOST_OPTIMIZATIONS=0`` runs the
 whole suite optimised (it passes that way too).
 """
