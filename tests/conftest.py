@@ -30,7 +30,7 @@ import pathlib
 from jcomps import hostdevices
 
 os.environ.setdefault("JCOMPS_COMPILE_CACHE", "none")
-os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
+os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")  # JAX reads it (its own parsing) when imported below
 
 if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", ""):
     hostdevices.configure(2)
@@ -42,9 +42,6 @@ import pytest  # noqa: E402
 from hypothesis import settings  # noqa: E402
 
 jax.config.update("jax_default_matmul_precision", "highest")
-# The variable is read when JAX is imported; a plugin may have imported it first.
-jax.config.update("jax_disable_most_optimizations",
-                  os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"].lower() in ("1", "true", "t", "yes", "y", "on"))
 
 settings.register_profile("fast", deadline=None, max_examples=25)
 settings.register_profile("thorough", deadline=None, max_examples=500)
