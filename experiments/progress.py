@@ -35,7 +35,7 @@ class Progress:
         self.iteration = np.zeros(seeds, np.int64)
         self.success = np.zeros(seeds)
         self.meta_loss = np.full(seeds, np.nan)
-        self.meta_health = np.full((seeds, 4), np.nan)  # value l2, value EV on returns, mean |Â|, mean ρ
+        self.meta_health = np.full((seeds, 5), np.nan)  # value l2, value EV on returns, mean |Â|, mean ρ, inner gain
         self.heldout_begin()
 
     def restart_clock(self):
@@ -71,7 +71,8 @@ class Progress:
     def record_meta_step(self, member: int, task: int, step: int, steps: int, loss: float,
                          health: Optional[tuple] = None):
         """After every outer update of a meta-training phase (between two tasks); ``health``: (value l2, value
-        heads' explained variance on the returns, mean |Â|, mean clipped ρ), means over the seen tasks."""
+        heads' explained variance on the returns, mean |Â|, mean clipped ρ, the inner step's gain in the outer loss),
+        means over the seen tasks."""
         self.meta_loss[member] = float(loss)
         if health is not None:
             self.meta_health[member] = health
@@ -83,8 +84,8 @@ class Progress:
     def _health(self) -> str:
         if np.all(np.isnan(self.meta_health)):
             return ""
-        l2, ev, adv, rho = np.nanmean(self.meta_health, axis=0)
-        return f" value l2 {l2:.3g} EV {ev:.2f} |A| {adv:.3g} rho {rho:.2f}"
+        l2, ev, adv, rho, gain = np.nanmean(self.meta_health, axis=0)
+        return f" value l2 {l2:.3g} EV {ev:.2f} |A| {adv:.3g} rho {rho:.2f} inner gain {gain:+.3g}"
 
     def record_compress(self, member: int, task: int, step: int, steps: int, kl: float):
         """After every iteration of a compress phase (``pnc``: distilling the active column into the knowledge
@@ -218,7 +219,8 @@ class Console:
 
     @staticmethod
     def _meta_step(progress: Progress, event):
-        health = tuple(event[k] for k in ("value_l2", "value_ev", "adv_abs", "rho")) if "value_ev" in event else None
+        keys = ("value_l2", "value_ev", "adv_abs", "rho", "inner_gain")
+        health = tuple(event[k] for k in keys) if "value_ev" in event else None
         progress.record_meta_step(event["member"], event["task"], event["meta_step"], event["meta_steps"],
                                   event["bc_loss"], health)
 
@@ -297,14 +299,16 @@ def _learnt_means(per_task, learnt) -> tuple[float, float]:
 def meta_health_text(meta, t: int, slot: int) -> str:
     """One line on the meta phase after task position ``t`` of ``meta`` (``jcomps.meta.MetaMetrics`` with leading
     [seeds, tasks]; ``slot``: that task's experience slot): the value heads' fit to their data's returns before
-    and after, the newest head's, and how much the old tasks still contribute."""
+    and after, the newest head's, how much the old tasks still contribute, and what the inner step gains in the outer
+    loss (L(θ) − L(φ_j), mean over the seen slots, and the newest task's)."""
     start = _at_task(meta.start, t)
     end = _at_task(meta.end, t)
     mean = lambda x: float(np.nanmean(x))  # noqa: E731 - over seeds and seen slots
     return (f"heads' EV on returns {mean(start.value_ev):.2f} -> {mean(end.value_ev):.2f} (newest head "
             f"{mean(start.value_ev[:, slot]):.2f} -> {mean(end.value_ev[:, slot]):.2f}), bias/std "
             f"{mean(end.value_bias / end.return_std):+.2f}, mean rho {mean(end.rho):.2f} (oldest task "
-            f"{mean(end.rho[:, 0]):.2f}), |A| {mean(end.adv_abs):.3g}, bc loss {mean(end.bc_loss):.3f}")
+            f"{mean(end.rho[:, 0]):.2f}), |A| {mean(end.adv_abs):.3g}, bc loss {mean(end.bc_loss):.3f}, inner gain "
+            f"{mean(end.inner_gain):+.3g} (newest task {mean(end.inner_gain[:, slot]):+.3g})")
 
 
 def _at_task(stats, t: int):

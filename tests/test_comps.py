@@ -103,6 +103,60 @@ def test_the_meta_step_works_in_the_rl_steps_reward_units_and_learning_rate():
     assert comps.meta_config(fixed).reward_scale == 1.0 and comps.meta_config(fixed).value_learning_rate == 1e-3
 
 
+def test_where_the_meta_step_starts():
+    """With no meta-training steps the meta policy is where the meta step starts: the policy that learnt the task
+    (FTML), the slot's fresh initialisation, or the last meta policy, the latter two with the newest statistics."""
+    family = envs.make("point_goal")
+    no_meta = dataclasses.replace(SMALL_META, num_meta_steps=0, value_fit_steps=0)
+    learn = {}
+
+    def run(**fields):
+        config = comps.CoMPSConfig(ppo=SMALL_PPO, meta=no_meta, max_tasks=3, num_skilled=3, num_offpolicy=5, **fields)
+        method = methods.make("comps", family, config)
+        key = tuple(sorted(fields.items()))
+        learn[key] = jax.jit(method.learn_task)
+        states = [method.init(jax.random.PRNGKey(0))]
+        for i in range(2):
+            states.append(learn[key](states[-1], envs.task_at(family, i))[0])
+        return states
+
+    def learnt_statistics(policy):
+        assert float(policy["obs_norm"].count) > 0  # the RL step's statistics, not the identity normaliser
+
+    warm = run()
+    assert warm[0].fresh is None
+    chex.assert_trees_all_equal(warm[1].params.policy, warm[1].meta.policy)
+    fresh = run(warm_start=False)
+    s0, s1, s2 = fresh
+    chex.assert_shape(s0.fresh["log_std"], (3, family.action_size))
+    for task, state in ((0, s1), (1, s2)):
+        slot = jax.tree.map(lambda x: x[task], s0.fresh)
+        chex.assert_trees_all_equal({k: v for k, v in state.meta.policy.items() if k != "obs_norm"},
+                                    {k: v for k, v in slot.items() if k != "obs_norm"})
+        learnt_statistics(state.meta.policy)
+    w = np.asarray(s0.fresh["mean"][0]["w"])
+    assert not np.allclose(w[0], w[1]) and not np.allclose(w[0], np.asarray(s0.params.policy["mean"][0]["w"]))
+    last = run(warm_start=False, meta_start="last")
+    assert last[0].fresh is None
+    for state in last[1:]:
+        chex.assert_trees_all_equal(state.meta.policy["mean"], last[0].meta.policy["mean"])
+        learnt_statistics(state.meta.policy)
+    # Ignored with the warm start.
+    assert run(meta_start="last")[0].fresh is None
+
+
+def test_runs_made_before_meta_start_are_read_as_they_ran():
+    from jcomps import rundir
+
+    for name, earlier in (("gmps_ppo", "last"), ("gmps_ppo_is", "last"), ("comps", "fresh")):
+        stored = rundir._jsonable(methods.default_config(name, "point_goal"))
+        assert methods.resolve_config(name, "point_goal", stored=stored).meta_start == stored["meta_start"]
+        del stored["meta_start"]
+        assert methods.resolve_config(name, "point_goal", stored=stored).meta_start == earlier
+    assert methods.default_config("gmps_ppo", "point_goal").meta_start == "fresh"
+    assert methods.default_config("gmps_ppo_last", "point_goal").meta_start == "last"
+
+
 def test_gmps_ppo_is_registered_without_importance_weights():
     method = methods.make("gmps_ppo", envs.make("point_goal"))
     assert method.name == "gmps_ppo"

@@ -86,21 +86,23 @@ def test_console_shows_the_meta_steps_health(console, tmp_path):
     show = console.Console(lines.append, str(tmp_path), interval=0.0)
     show(_start_event(num_tasks=3, devices=1, chunk=1, start_task=1))
     show({"event": "meta_step", "program": "comps", "member": 0, "task": 1, "meta_step": 3, "meta_steps": 125,
-          "bc_loss": -3.0, "value_l2": 0.25, "value_ev": 0.8, "adv_abs": 0.4, "rho": 0.5})
+          "bc_loss": -3.0, "value_l2": 0.25, "value_ev": 0.8, "adv_abs": 0.4, "rho": 0.5, "inner_gain": 0.125})
     assert lines[-1].startswith("[comps] task 2/3 meta-training step 3/125 bc loss -3.000 value l2 0.25 EV 0.80 "
-                                "|A| 0.4 rho 0.50")
+                                "|A| 0.4 rho 0.50 inner gain +0.125")
     # After task 2 (slot 1): slots 0 and 1 seen, slot 2 not (NaN); two seeds.
     per_slot = lambda a, b: np.array([[[a, b, np.nan]], [[a, b, np.nan]]], np.float32)  # noqa: E731 - [S, 1, 3]
-    start = meta.SlotStats(*[per_slot(0.5, 0.5)] * 8)._replace(value_ev=per_slot(0.6, 0.2))
+    fields = len(meta.SlotStats._fields)
+    start = meta.SlotStats(*[per_slot(0.5, 0.5)] * fields)._replace(value_ev=per_slot(0.6, 0.2))
     end = start._replace(value_ev=per_slot(0.7, 0.9), rho=per_slot(0.4, 0.8), value_bias=per_slot(0.1, 0.3),
-                         return_std=per_slot(1.0, 1.0))
-    steps = meta.SlotStats(*[np.zeros((2, 1, 5), np.float32)] * 8)
+                         return_std=per_slot(1.0, 1.0), inner_gain=per_slot(0.25, -0.05))
+    steps = meta.SlotStats(*[np.zeros((2, 1, 5), np.float32)] * fields)
     chunk = _chunk_metrics(2, 1, 4)
     chunk = chunk._replace(task=chunk.task._replace(meta=meta.MetaMetrics(steps, start, end)))
     show({"event": "chunk", "program": "comps", "entry": "comps", "start": 1, "stop": 2, "num_tasks": 3,
           "seeds": [0, 1], "metrics": chunk, "per_task": chunk})
     assert lines[-1] == ("[comps] task 2/3 meta phase: heads' EV on returns 0.40 -> 0.80 (newest head 0.20 -> 0.90), "
-                         "bias/std +0.20, mean rho 0.60 (oldest task 0.40), |A| 0.5, bc loss 0.500")
+                         "bias/std +0.20, mean rho 0.60 (oldest task 0.40), |A| 0.5, bc loss 0.500, inner gain +0.1 "
+                         "(newest task -0.05)")
 
 
 def test_console_shows_the_learnt_tasks_success_and_forgetting(console, tmp_path):

@@ -63,10 +63,13 @@ def test_results_schema(full_run):
     meta = results["methods"]["comps"]["meta"]
     assert "meta" not in results["methods"]["ppo_tl"]
     for key in ("value_ev_start", "value_ev_end", "newest_value_ev_start", "value_bias_over_return_std_end",
-                "value_l2_end", "adv_abs_end", "rho_end", "oldest_rho_end", "bc_loss_end"):
+                "value_l2_end", "adv_abs_end", "rho_end", "oldest_rho_end", "bc_loss_end", "inner_gain_start",
+                "inner_gain_end", "newest_inner_gain_end"):
         assert np.asarray(meta[key], dtype=float).shape == (2, 3), key
+        assert np.all(np.isfinite(np.asarray(meta[key], dtype=float))), key
     assert all(0 < r <= 1 for row in meta["rho_end"] for r in row)
-    assert [[len(slots) for slots in row] for row in meta["per_slot_value_ev_end"]] == [[1, 2, 3]] * 2
+    for key in ("per_slot_value_ev_end", "per_slot_inner_gain_end"):
+        assert [[len(slots) for slots in row] for row in meta[key]] == [[1, 2, 3]] * 2, key
     assert len(meta["value_ev_end_mean"]) == 3
     sig = results["significance"]["against"]["ppo_tl"]
     assert sig["bootstrap_samples"] == 30_000 and set(sig) >= {"p_ttest", "p_bootstrap", "t"}

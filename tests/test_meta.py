@@ -213,12 +213,104 @@ def test_sequential_outer_update_follows_algorithm_1():
     assert sorted(calls) == [(2, 4), (4, 4)]
 
 
-@pytest.mark.parametrize("field,value", [("inner_learning_rate", 0.0), ("num_meta_steps", -1),
+@pytest.mark.parametrize("field,value", [("inner_learning_rate", -0.1), ("num_meta_steps", -1),
                                          ("inner_trajectories", 0), ("discount", 0.0), ("task_chunk", -1),
-                                         ("outer_update", "average")])
+                                         ("outer_update", "average"), ("outer_loss", "mse"),
+                                         ("inner_ratio_clip", 1.0)])
 def test_bad_meta_config_names_the_field(field, value):
     with pytest.raises(ValueError, match=field):
         meta.MetaConfig(**{field: value})
+
+
+def test_the_inner_clip_is_an_option_of_the_unweighted_inner_step():
+    meta.MetaConfig(importance_sampling=False, vtrace_baseline=False, inner_ratio_clip=0.2)
+    with pytest.raises(ValueError, match="inner_ratio_clip"):
+        meta.MetaConfig(importance_sampling=True, inner_ratio_clip=0.2)
+
+
+def _slot_batch(seed, config=CONFIG):
+    stores = _stores(seed)
+    return stores, jax.tree.map(lambda x: x[0], meta.sample_batches(config, stores, jax.random.PRNGKey(0)))
+
+
+@pytest.mark.parametrize("outer_loss", ["nll", "mean_mse"])
+def test_the_inner_gain_is_the_outer_loss_before_the_inner_step_minus_after(outer_loss):
+    config = dataclasses.replace(CONFIG, outer_loss=outer_loss)
+    _, batch = _slot_batch(13)
+    policy, value = _params()
+    _, stats = meta.slot_objective(config, policy, value, 0, batch)
+    before = meta.outer_loss(config, policy, batch.skilled_obs, batch.skilled_action, batch.skilled_valid)
+    adapted = meta.outer_loss(config, _adapted(config, policy, value, batch), batch.skilled_obs,
+                              batch.skilled_action, batch.skilled_valid)
+    np.testing.assert_allclose(float(stats.bc_loss), float(adapted), rtol=1e-6)
+    np.testing.assert_allclose(float(stats.inner_gain), float(before - adapted), rtol=1e-5, atol=1e-7)
+    assert abs(float(stats.inner_gain)) > 1e-4  # the inner step moves the outer loss
+
+
+def _adapted(config, policy, value, batch):
+    """φ = θ + α ∇_θ J(θ), by jax.grad of the inner objective written out (advantages as constants)."""
+    off = batch.off
+    head = meta.head_params(value, 0)
+    values = networks.value_apply(head, networks.normalize_obs(policy, off.traj.obs))
+    bootstrap = networks.value_apply(head, networks.normalize_obs(policy, off.traj.last_obs))
+    log_prob = networks.GAUSSIAN.log_prob(policy, off.traj.obs, off.traj.action)
+    advantages, _, _ = meta._vtrace_terms(config, log_prob, values, bootstrap, off)
+    mask = off.traj.valid * off.mask[None, :]
+    objective = lambda p: masked_mean(networks.GAUSSIAN.log_prob(p, off.traj.obs, off.traj.action) * advantages,  # noqa
+                                      mask)
+    return jax.tree.map(lambda p, g: p + config.inner_learning_rate * g, policy, jax.grad(objective)(policy))
+
+
+def test_with_no_inner_step_the_gain_is_exactly_zero():
+    """Law: α = 0 makes φ_j = θ, so every gain the meta step reports (per outer step and per slot) is exactly 0."""
+    config = dataclasses.replace(CONFIG, inner_learning_rate=0.0, num_meta_steps=3)
+    stores = _stores(14)
+    policy, value = _params()
+    stats, _, _ = meta.meta_gradients(config, policy, value, stores, jax.random.PRNGKey(3))
+    assert float(stats.inner_gain) == 0.0
+    per_slot = meta.slot_diagnostics(config, policy, value, stores)
+    np.testing.assert_array_equal(np.asarray(per_slot.inner_gain)[:2], 0.0)
+    assert np.isnan(float(per_slot.inner_gain[2]))  # unseen
+    _, steps = meta.meta_train(config, _meta_state(policy, value, config), stores, jax.random.PRNGKey(4))
+    np.testing.assert_array_equal(np.asarray(steps.inner_gain), 0.0)
+    with_step, _, _ = meta.meta_gradients(CONFIG, policy, value, stores, jax.random.PRNGKey(3))
+    assert float(with_step.inner_gain) != 0.0
+
+
+def test_the_mean_squared_error_outer_loss_keeps_the_std_out_of_the_meta_step():
+    config = dataclasses.replace(CONFIG, outer_loss="mean_mse")
+    stores, batch = _slot_batch(15, config)
+    policy, value = _params()
+    mean, _ = networks.GAUSSIAN.dist(policy, batch.skilled_obs)
+    by_hand = masked_mean(jnp.mean(jnp.square(mean - batch.skilled_action), axis=-1), batch.skilled_valid)
+    np.testing.assert_allclose(float(meta.mean_mse_loss(policy, batch.skilled_obs, batch.skilled_action,
+                                                        batch.skilled_valid)), float(by_hand), rtol=1e-6)
+    grads = {loss: jax.grad(lambda p: meta.slot_objective(dataclasses.replace(CONFIG, outer_loss=loss), p, value, 0,
+                                                          batch)[0])(policy) for loss in ("nll", "mean_mse")}
+    assert float(jnp.max(jnp.abs(grads["nll"]["log_std"]))) > 0
+    np.testing.assert_array_equal(np.asarray(grads["mean_mse"]["log_std"]), 0.0)
+    assert float(jnp.max(jnp.abs(grads["mean_mse"]["mean"][0]["w"]))) > 0
+    state, _ = meta.meta_train(config, _meta_state(policy, value, config), stores, jax.random.PRNGKey(5))
+    np.testing.assert_array_equal(np.asarray(state.policy["log_std"]), np.asarray(policy["log_std"]))
+    assert float(jnp.max(jnp.abs(state.policy["mean"][0]["w"] - policy["mean"][0]["w"]))) > 0
+
+
+def test_the_authors_ppo_inner_step_weights_by_the_ratio_clipped_to_one_plus_minus_epsilon():
+    base = dataclasses.replace(CONFIG, importance_sampling=False, vtrace_baseline=False)
+    _, batch = _slot_batch(16, base)
+    policy, _ = _params()
+    off = batch.off
+    log_prob = networks.GAUSSIAN.log_prob(policy, off.traj.obs, off.traj.action)
+    values, bootstrap = 0.1 * jnp.ones_like(log_prob), jnp.zeros_like(off.traj.last_obs[:, 0])
+    plain, targets, ones = meta._vtrace_terms(base, log_prob, values, bootstrap, off)
+    clipped, targets_c, weights = meta._vtrace_terms(dataclasses.replace(base, inner_ratio_clip=0.2), log_prob,
+                                                     values, bootstrap, off)
+    ratio = np.exp(np.asarray(log_prob - off.traj.log_prob))
+    assert np.any(ratio < 0.8) and np.any(ratio > 1.2)  # the clip binds on both sides in this batch
+    np.testing.assert_array_equal(np.asarray(ones), 1.0)
+    np.testing.assert_allclose(np.asarray(weights), np.clip(ratio, 0.8, 1.2), rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(clipped), np.asarray(weights * plain), rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(targets_c), np.asarray(targets))
 
 
 @pytest.mark.parametrize("vtrace_baseline", [False, True])

@@ -116,6 +116,26 @@ def test_results_json_of_a_hand_made_run(run_dir):
     assert "| method | tasks 1-1 | tasks 2-2 |" in table and "P(fewer iterations than comps)" in table
 
 
+def test_a_run_made_before_the_inner_gain_was_measured_is_reported(run_dir):
+    """A meta-learning run whose raw results predate the inner step's gain (issue 43): its other health fields
+    are reported, the gain as unmeasured (null), and the meta step's health is drawn."""
+    out, raws = run_dir
+    rng = np.random.default_rng(7)
+    fields = ("bc_loss", "value_l2", "value_ev", "value_ev_targets", "value_bias", "return_std", "adv_abs", "rho")
+    seen = np.arange(N)[None, :, None] >= np.arange(N)[None, None, :]  # [1, task, slot]: slot seen after task
+    arrays = dict(raws["comps"])
+    for part, shape in (("steps", (S, N, 4)), ("start", (S, N, N)), ("end", (S, N, N))):
+        for field in fields:
+            x = rng.uniform(0.1, 1.0, shape).astype(np.float32)
+            arrays[f"task.meta.{part}.{field}"] = x if part == "steps" else np.where(seen, x, np.nan)
+    _save(out / "raw" / "comps.npz", arrays)
+    got = report.write(str(out))
+    health = got["methods"]["comps"]["meta"]
+    assert np.asarray(health["rho_end"], dtype=float).shape == (S, N)
+    assert health["inner_gain_end"] == [[None] * N] * S
+    assert "plots/meta_health.png" in got["plots"] and (out / "plots" / "meta_health.png").is_file()
+
+
 def test_the_baseline_is_any_method_of_the_run(run_dir):
     out, raws = run_dir
     description = report.read_description(str(out))

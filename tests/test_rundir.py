@@ -85,17 +85,19 @@ def test_resume_fills_config_fields_added_since_the_run_was_made(runner, full_ru
     assert json.loads(run_json.read_text()) == json.loads((full_run / "run.json").read_text())
 
 
-def test_resume_refuses_a_comps_run_made_before_per_task_value_networks(runner, full_run, tmp_path, capsys):
-    old = tmp_path / "old_heads"
+# As made before issue 27 (its state no longer fits) and before issue 43 (its metrics lack the inner step's gain).
+@pytest.mark.parametrize("field", ["value_init", "outer_loss"])
+def test_resume_refuses_a_comps_run_whose_checkpoints_no_longer_fit(runner, full_run, tmp_path, capsys, field):
+    old = tmp_path / f"old_{field}"
     shutil.copytree(full_run, old)
     run_json = old / "run.json"
     stored = json.loads(run_json.read_text())
-    del stored["methods"]["comps"]["meta"]["value_init"]  # as made before issue 27: its state no longer fits
+    del stored["methods"]["comps"]["meta"][field]
     run_json.write_text(json.dumps(stored))
     with pytest.raises(SystemExit) as info:
         runner.main(["--out", str(old), "--resume"])
     err = capsys.readouterr().err
-    assert info.value.code == 2 and "value_init" in err and "start it anew" in err
+    assert info.value.code == 2 and field in err and "start it anew" in err
 
 
 def test_resume_refuses_a_run_made_before_the_learnt_tasks_evaluations(runner, full_run, tmp_path, capsys):

@@ -35,7 +35,8 @@ class MetaConfig:
     outer_learning_rate: float = 0.005
     """Adam learning rate of the outer (imitation) update (paper: 0.005)."""
     inner_learning_rate: float = 0.005
-    """α, the inner policy-gradient step size (paper: 0.005 Ant and Cheetah, 0.0025 MetaWorld)."""
+    """α, the inner policy-gradient step size (paper: 0.005 Ant and Cheetah, 0.0025 MetaWorld); 0: no inner step
+    (φ_j = θ: the meta step is multi-task behaviour cloning, whose inner-step gain is 0)."""
     num_meta_steps: int = 25
     """Meta training steps after each task (paper: 25)."""
     num_outer_steps: int = 5
@@ -55,6 +56,10 @@ class MetaConfig:
     """c̄, trace-coefficient clip in the V-trace targets."""
     pg_rho_bar: float = 1.0
     """Importance-weight clip in the inner policy gradient."""
+    inner_ratio_clip: float = 0.0
+    """ε of the authors' PPO-based inner step (their GMPS+PPO, ``use_ppo``): without importance sampling the inner
+    policy gradient is weighted by π_θ/μ clipped to [1 − ε, 1 + ε] (a constant weight, 0.2 in their code); 0: off,
+    every weight 1. Only without ``importance_sampling``."""
     importance_sampling: bool = True
     """Weight the inner policy gradient and the V-trace targets by π_θ/μ (off for GMPS+PPO)."""
     vtrace_baseline: bool = True
@@ -82,6 +87,12 @@ class MetaConfig:
     """The meta step's Adam states (policy and value heads) at the start of a meta phase: ``reset``, fresh for every
     meta phase (the moments of the last phase belong to another θ: the warm start jumps it); ``carry``, as the last
     meta phase left them (before issue 27; docs/design.md has both measured)."""
+    outer_loss: str = "nll"
+    """The outer (imitation) loss on D*_j: ``nll``, −mean log π_φ(a|s), the Gaussian negative log-likelihood with the
+    learned std (the paper's Eq. 1: the meta step also sets the next task's exploration std); ``mean_mse``, the mean
+    squared error of the policy's mean action (averaged over action dimensions), the std kept out of the meta step
+    (its outer gradient is zero, so θ's std stays where the meta phase started), as the authors' code cloned
+    (docs/design.md has both measured)."""
     outer_update: str = "mean"
     """How θ is updated: ``mean``, one Adam step on the mean over seen tasks per outer step; ``sequential``,
     Algorithm 1 read literally: per meta step, task after task (newest last), ``num_outer_steps`` Adam steps on
@@ -96,9 +107,10 @@ class MetaConfig:
 
     def __post_init__(self):
         check_finite_fields(self)
-        for name in ("outer_learning_rate", "inner_learning_rate", "value_fit_learning_rate", "rho_bar", "c_bar",
-                     "pg_rho_bar"):
+        for name in ("outer_learning_rate", "value_fit_learning_rate", "rho_bar", "c_bar", "pg_rho_bar"):
             check_field(getattr(self, name) > 0, name, getattr(self, name), "a number > 0")
+        check_field(self.inner_learning_rate >= 0, "inner_learning_rate", self.inner_learning_rate,
+                    "a number >= 0 (0: no inner step, the meta step is multi-task behaviour cloning)")
         check_field(self.value_learning_rate is None or self.value_learning_rate > 0, "value_learning_rate",
                     self.value_learning_rate, "None (the RL step's) or a number > 0")
         for name in ("num_meta_steps", "num_outer_steps", "value_fit_steps"):
@@ -107,6 +119,10 @@ class MetaConfig:
         for name in ("inner_trajectories", "skilled_trajectories"):
             check_field(getattr(self, name) >= 1, name, getattr(self, name), "an integer >= 1")
         check_field(0 < self.discount <= 1, "discount", self.discount, "a number in (0, 1]")
+        check_field(0 <= self.inner_ratio_clip < 1, "inner_ratio_clip", self.inner_ratio_clip, "a number in [0, 1)")
+        check_field(self.inner_ratio_clip == 0 or not self.importance_sampling, "inner_ratio_clip",
+                    self.inner_ratio_clip, "0 with importance_sampling (the clip is the unweighted rungs' option)")
+        check_field(self.outer_loss in OUTER_LOSSES, "outer_loss", self.outer_loss, ", ".join(OUTER_LOSSES))
         check_field(self.outer_update in OUTER_UPDATES, "outer_update", self.outer_update, ", ".join(OUTER_UPDATES))
         check_field(self.reward_scale is None or self.reward_scale > 0, "reward_scale", self.reward_scale,
                     "None (the RL step's) or a number > 0")
@@ -116,6 +132,7 @@ class MetaConfig:
 
 
 OUTER_UPDATES = ("mean", "sequential")
+OUTER_LOSSES = ("nll", "mean_mse")
 VALUE_INITS = ("rl_step", "random")
 OPTIMIZER_STATES = ("carry", "reset")
 
@@ -142,6 +159,8 @@ class SlotStats(NamedTuple):
       adv_abs: mean |Â| of the inner step's advantages (importance weights included).
       rho: mean clipped importance weight of the inner step, min(ρ̄_pg, π_θ/μ): how much the old task still
         contributes (1 without importance sampling).
+      inner_gain: L_BC(θ) − L_BC(φ_j) on the same D*_j samples: how much the one inner step helps task j (0 with
+        α = 0; negative where it hurts).
     """
 
     bc_loss: jax.Array
@@ -152,6 +171,7 @@ class SlotStats(NamedTuple):
     return_std: jax.Array
     adv_abs: jax.Array
     rho: jax.Array
+    inner_gain: jax.Array
 
 
 def init_value_heads(rng, obs_size: int, hidden_sizes, num_slots: int) -> list:
@@ -196,8 +216,9 @@ def _vtrace_terms(config: MetaConfig, log_prob, values, bootstrap, off: buffers.
     """
     traj = off.traj
     reward, discounts = _rewards_and_discounts(config, traj)
-    log_rhos = log_prob - traj.log_prob if config.importance_sampling else jnp.zeros_like(traj.log_prob)
-    values, bootstrap, log_rhos = jax.lax.stop_gradient((values, bootstrap, log_rhos))
+    log_ratio = log_prob - traj.log_prob
+    log_rhos = log_ratio if config.importance_sampling else jnp.zeros_like(traj.log_prob)
+    values, bootstrap, log_rhos, log_ratio = jax.lax.stop_gradient((values, bootstrap, log_rhos, log_ratio))
     if config.vtrace_baseline:
         out = vtrace.vtrace(values, bootstrap, reward, discounts, log_rhos, rho_bar=config.rho_bar,
                             c_bar=config.c_bar, pg_rho_bar=config.pg_rho_bar)
@@ -209,8 +230,12 @@ def _vtrace_terms(config: MetaConfig, log_prob, values, bootstrap, off: buffers.
         # No V-trace: the advantage is the bootstrapped discounted return minus V; importance weights (if on)
         # still weight the step.
         targets = vtrace.discounted_returns(reward, discounts, bootstrap)
-        weights = (jnp.minimum(jnp.exp(log_rhos), config.pg_rho_bar) if config.importance_sampling
-                   else jnp.ones_like(log_rhos))
+        if config.importance_sampling:
+            weights = jnp.minimum(jnp.exp(log_rhos), config.pg_rho_bar)
+        elif config.inner_ratio_clip > 0:  # the authors' PPO-based inner step: the ratio clipped to [1 − ε, 1 + ε]
+            weights = jnp.clip(jnp.exp(log_ratio), 1.0 - config.inner_ratio_clip, 1.0 + config.inner_ratio_clip)
+        else:
+            weights = jnp.ones_like(log_rhos)
         raw = targets - values
     if config.normalize_advantages:
         raw = masked_standardize(raw, traj.valid * off.mask[None, :])
@@ -233,6 +258,18 @@ def adapt(config: MetaConfig, policy, off: buffers.OffPolicyStore, advantages, l
 def bc_loss(policy, obs, action, valid):
     """Behaviour cloning: −mean log π(a|s) over valid samples."""
     return -masked_mean(networks.GAUSSIAN.log_prob(policy, obs, action), valid)
+
+
+def mean_mse_loss(policy, obs, action, valid):
+    """Behaviour cloning of the mean: the mean over valid samples and action dimensions of (μ_θ(s) − a)², the std
+    left out (the authors' code: ``reduce_mean(m**2 - 2*m*a_star + a_star**2)``)."""
+    mean, _ = networks.GAUSSIAN.dist(policy, obs)
+    return masked_mean(jnp.mean(jnp.square(mean - action), axis=-1), valid)
+
+
+def outer_loss(config: MetaConfig, policy, obs, action, valid):
+    """The outer loss ``config.outer_loss`` of ``policy`` on skilled samples (``bc_loss`` or ``mean_mse_loss``)."""
+    return (mean_mse_loss if config.outer_loss == "mean_mse" else bc_loss)(policy, obs, action, valid)
 
 
 def fit_head(config: MetaConfig, policy, value, slot, off: buffers.OffPolicyStore):
@@ -267,11 +304,12 @@ def _explained_variance(target, prediction, mask):
     return 1.0 - masked_var(target - prediction, mask) / jnp.maximum(masked_var(target, mask), 1e-8)
 
 
-def _stats(config: MetaConfig, bc, value_l2, values, bootstrap, targets, advantages, weights,
+def _stats(config: MetaConfig, bc, value_l2, values, bootstrap, targets, advantages, weights, bc_theta,
            off: buffers.OffPolicyStore):
-    """SlotStats of one slot's batch (``bc`` and ``value_l2`` as given, the rest constants)."""
-    values, bootstrap, targets, advantages, weights = jax.lax.stop_gradient(
-        (values, bootstrap, targets, advantages, weights))
+    """SlotStats of one slot's batch (``bc`` and ``value_l2`` as given, the rest constants; ``bc_theta`` the outer
+    loss of the unadapted policy on the same samples)."""
+    values, bootstrap, targets, advantages, weights, bc_theta = jax.lax.stop_gradient(
+        (values, bootstrap, targets, advantages, weights, bc_theta))
     traj = off.traj
     mask = traj.valid * off.mask[None, :]
     returns = vtrace.discounted_returns(*_rewards_and_discounts(config, traj), bootstrap)
@@ -283,22 +321,28 @@ def _stats(config: MetaConfig, bc, value_l2, values, bootstrap, targets, advanta
         value_bias=masked_mean(values - returns, mask),
         return_std=jnp.sqrt(masked_var(returns, mask)),
         adv_abs=masked_mean(jnp.abs(advantages), mask),
-        rho=masked_mean(weights, mask))
+        rho=masked_mean(weights, mask),
+        inner_gain=bc_theta - jax.lax.stop_gradient(bc))
 
 
 def head_objective(config: MetaConfig, policy, head, batch: TaskBatch):
     """``slot_objective`` with the slot's value head ``head`` (its MLP layers) given directly: its gradient in
     ``head`` is that head's slice of the stacked heads' gradient."""
     off = batch.off
+    if config.outer_loss == "mean_mse":  # the std is kept out of the meta step: no outer gradient reaches it
+        policy = {**policy, "log_std": jax.lax.stop_gradient(policy["log_std"])}
     # The value heads see observations normalised like the policy's (statistics are constants).
     values = networks.value_apply(head, networks.normalize_obs(policy, off.traj.obs))
     bootstrap = networks.value_apply(head, networks.normalize_obs(policy, off.traj.last_obs))
     log_prob, log_prob_vjp = jax.vjp(lambda p: networks.GAUSSIAN.log_prob(p, off.traj.obs, off.traj.action), policy)
     advantages, targets, weights = _vtrace_terms(config, log_prob, values, bootstrap, off)
     adapted = adapt(config, policy, off, advantages, log_prob_vjp)
-    bc = bc_loss(adapted, batch.skilled_obs, batch.skilled_action, batch.skilled_valid)
+    bc = outer_loss(config, adapted, batch.skilled_obs, batch.skilled_action, batch.skilled_valid)
+    bc_theta = outer_loss(config, jax.lax.stop_gradient(policy), batch.skilled_obs, batch.skilled_action,
+                          batch.skilled_valid)
     value_l2 = masked_mean(jnp.square(values - targets), off.traj.valid * off.mask[None, :])
-    return bc + value_l2, _stats(config, bc, value_l2, values, bootstrap, targets, advantages, weights, off)
+    return bc + value_l2, _stats(config, bc, value_l2, values, bootstrap, targets, advantages, weights, bc_theta,
+                                 off)
 
 
 def slot_objective(config: MetaConfig, policy, value, slot, batch: TaskBatch):
@@ -452,8 +496,8 @@ def meta_train(config: MetaConfig, state: MetaState, stores: buffers.SequenceSto
     both Adam states start fresh.
 
     ``progress_fn`` (``jcomps.progress``), if given, gets ``{"meta_step", "meta_steps", "bc_loss", "value_l2",
-    "value_ev", "adv_abs", "rho"}`` (meta-training a long sequence takes minutes on a CPU): after every outer step
-    (mean), or after every meta step with ``meta_step`` counted in outer steps (sequential).
+    "value_ev", "adv_abs", "rho", "inner_gain"}`` (meta-training a long sequence takes minutes on a CPU): after
+    every outer step (mean), or after every meta step with ``meta_step`` counted in outer steps (sequential).
     """
     policy_opt, value_opt = optimizers(config)
     if config.optimizer_state == "reset":
@@ -473,7 +517,7 @@ def meta_train(config: MetaConfig, state: MetaState, stores: buffers.SequenceSto
             progress_fn({"phase": progress.META_STEP, "meta_step": step, "meta_steps": jnp.int32(steps),
                          "bc_loss": stats.bc_loss,
                          "value_l2": stats.value_l2, "value_ev": stats.value_ev, "adv_abs": stats.adv_abs,
-                         "rho": stats.rho})
+                         "rho": stats.rho, "inner_gain": stats.inner_gain})
 
     if config.outer_update == "mean":
         def outer(state: MetaState, xs):

@@ -108,8 +108,9 @@ def _heldout(save: Callable, methods_: dict) -> None:
 
 
 def _meta_health(save: Callable, with_meta: dict, tasks) -> None:
-    """The meta step's health ({name: its ``meta`` summary}): the value heads' fit and the importance weights."""
-    fig, (ax_ev, ax_rho) = _figure((11, 4), 2)
+    """The meta step's health ({name: its ``meta`` summary}): the value heads' fit, the importance weights and the
+    inner step's gain in the outer loss (runs made before it was measured have no gain to draw)."""
+    fig, (ax_ev, ax_rho, ax_gain) = _figure((16.5, 4), 3)
     for k_, (name, m) in enumerate(with_meta.items()):
         ev, newest = _floats(m["value_ev_end"]), _floats(m["newest_value_ev_start"])
         ax_ev.plot(tasks, np.nanmean(ev, axis=0), marker="o", ms=3, color=f"C{k_}", label=f"{name}, all heads")
@@ -119,14 +120,22 @@ def _meta_health(save: Callable, with_meta: dict, tasks) -> None:
                     label=f"{name}, all tasks")
         ax_rho.plot(tasks, np.nanmean(_floats(m["oldest_rho_end"]), axis=0), ls=":", color=f"C{k_}",
                     label=f"{name}, task 1")
+        if np.isfinite(_floats(m.get("inner_gain_end", [[np.nan]]))).any():  # not in runs made before issue 43
+            ax_gain.plot(tasks, np.nanmean(_floats(m["inner_gain_end"]), axis=0), marker="o", ms=3, color=f"C{k_}",
+                         label=f"{name}, mean over seen tasks")
+            ax_gain.plot(tasks, np.nanmean(_floats(m["newest_inner_gain_end"]), axis=0), ls=":", marker="x", ms=3,
+                         color=f"C{k_}", label=f"{name}, newest task")
     ax_ev.axhline(0.0, color="gray", lw=0.8, ls="--")
     ax_ev.set(xlabel="task", ylabel="explained variance of the returns",
               title="Meta step: value heads' fit to their data's returns")
     ax_rho.set(xlabel="task", ylabel="mean clipped importance weight",
                title="Meta step: how much the old tasks contribute")
-    for a in (ax_ev, ax_rho):
+    ax_gain.axhline(0.0, color="gray", lw=0.8, ls="--")
+    ax_gain.set(xlabel="task", ylabel="L(θ) − L(φ_j) at the end of the meta phase",
+                title="Meta step: what one inner step gains")
+    for a in (ax_ev, ax_rho, ax_gain):
         _integer_ticks(a)
-        a.legend(fontsize=7)
+        _legend_or(a, fontsize=7)
     save(fig, "meta_health.png")
 
 

@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import json
 import os
+import warnings
 from typing import Optional
 
 import numpy as np
@@ -287,17 +288,25 @@ def probability_of_improvement(raw: results_.RawResults, baseline_raw: results_.
             **statistics.probability_of_fewer_iterations(raw.task.iterations, baseline_raw.task.iterations)}
 
 
+def _nanmean(x, axis):
+    """``np.nanmean``, NaN without a warning where a slice is all NaN (unseen slots; a gain a run did not measure)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmean(x, axis=axis)
+
+
 def meta_summary(meta) -> dict:
     """The health of a method's meta phases (``jcomps.meta.MetaMetrics`` with leading [seeds, tasks]) for
     ``results.json``: per seed and task, means over the seen slots at the start (before the first outer step,
     after the new head was initialised) and the end of the meta phase that followed the task, on each slot's whole
     stores; the newest task's head (slot = task position) and the oldest task's importance weights apart; and the
-    per-slot explained variances and weights at the end."""
+    per-slot explained variances, weights and inner-step gains (L_BC(θ) − L_BC(φ_j): what one inner step gains on
+    the task's skilled data) at the end."""
     start = {k: np.asarray(v, np.float64) for k, v in meta.start._asdict().items()}
     end = {k: np.asarray(v, np.float64) for k, v in meta.end._asdict().items()}
     seeds, tasks, _ = end["value_ev"].shape
     newest = lambda x: x[:, np.arange(tasks), np.arange(tasks)]  # noqa: E731 - slot t after task t
-    over_seen = lambda x: np.nanmean(x, axis=-1)  # noqa: E731 - unseen slots are NaN
+    over_seen = lambda x: _nanmean(x, axis=-1)  # noqa: E731 - unseen slots are NaN
     rows = lambda x: [[_json_float(round(float(v), 6)) for v in row] for row in x]  # noqa: E731
     out = {
         "statistic": "per seed and task: mean over the seen tasks' slots, each on its whole stores, at the start "
@@ -315,12 +324,17 @@ def meta_summary(meta) -> dict:
         "oldest_rho_end": rows(end["rho"][:, :, 0]),
         "bc_loss_start": rows(over_seen(start["bc_loss"])),
         "bc_loss_end": rows(over_seen(end["bc_loss"])),
+        "inner_gain_start": rows(over_seen(start["inner_gain"])),
+        "inner_gain_end": rows(over_seen(end["inner_gain"])),
+        "newest_inner_gain_end": rows(newest(end["inner_gain"])),
         "per_slot_value_ev_end": [[rows(end["value_ev"][s, t:t + 1, :t + 1])[0] for t in range(tasks)]
                                   for s in range(seeds)],
         "per_slot_rho_end": [[rows(end["rho"][s, t:t + 1, :t + 1])[0] for t in range(tasks)] for s in range(seeds)],
+        "per_slot_inner_gain_end": [[rows(end["inner_gain"][s, t:t + 1, :t + 1])[0] for t in range(tasks)]
+                                    for s in range(seeds)],
     }
-    for key in ("value_ev_end", "newest_value_ev_start", "rho_end"):
-        out[key + "_mean"] = [_json_float(round(float(v), 6)) for v in np.nanmean(
+    for key in ("value_ev_end", "newest_value_ev_start", "rho_end", "inner_gain_end"):
+        out[key + "_mean"] = [_json_float(round(float(v), 6)) for v in _nanmean(
             np.asarray([[np.nan if v is None else v for v in row] for row in out[key]], np.float64), axis=0)]
     return out
 

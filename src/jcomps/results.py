@@ -85,7 +85,7 @@ _LEGACY = {"heldout_return": "heldout.mean_return", "heldout_success": "heldout.
 
 def _upgrade(arrays: dict) -> dict:
     if "task.per_iteration.valid" in arrays:
-        return arrays
+        return _add_inner_gain(arrays)
     out = {}
     for key, value in arrays.items():
         if key.startswith("iter."):
@@ -95,6 +95,15 @@ def _upgrade(arrays: dict) -> dict:
     out.setdefault("heldout.iterations", np.zeros(shape, np.int32))
     out.setdefault("heldout.solved", np.zeros(shape, bool))
     return out
+
+
+def _add_inner_gain(arrays: dict) -> dict:
+    """The meta step's health of a run made before the inner step's gain was measured (issue 43): NaN gains."""
+    for part in ("steps", "start", "end"):
+        loss = arrays.get(f"task.meta.{part}.bc_loss")
+        if loss is not None and f"task.meta.{part}.inner_gain" not in arrays:
+            arrays = {**arrays, f"task.meta.{part}.inner_gain": np.full(np.shape(loss), np.nan, np.float32)}
+    return arrays
 
 
 def path(out: str, name: str) -> str:

@@ -79,6 +79,8 @@ UNRESUMABLE_BEFORE = {
                        "step's critic (issue 27)",
     "context_source": "PEARL now keeps oyster's encoder buffers and weighs its KL per task (issue 28)",
     "kb_statistics": "PNC's knowledge base now pools its observation statistics over tasks (issue 28)",
+    "meta.outer_loss": "the meta step now reports the inner step's gain per task slot, which its checkpoints lack "
+                       "(issue 43)",
 }
 
 # The same for evaluation fields (``eval.<field>``), whose addition changed the metrics that checkpoints hold.
@@ -121,6 +123,7 @@ def _check_resumable(out: str, run_json: str, description: dict) -> None:
     filled = []
     for name, config in description.get("methods", {}).items():
         if isinstance(stored.get("methods", {}).get(name), dict):
+            stored["methods"][name] = methods.with_earlier_values(stored["methods"][name])
             default = _jsonable(methods.default_config(name, description["run"]["family"]))
             filled += _fill_added_fields(stored["methods"][name], config, default, f"methods.{name}.")
     if isinstance(stored.get("run"), dict) and isinstance(description.get("run"), dict):

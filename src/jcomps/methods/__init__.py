@@ -12,6 +12,12 @@ A registered method is a constructor and its default config *instance*: the rung
 - ``gmps_ppo_is_x2``: + twice the skilled data (|D*_i| = 40; no warm start);
 - ``comps``: GMPS + PPO + IS + the FTML warm start, CoMPS.
 
+The rungs without the warm start start each meta step from a fresh initialisation (``CoMPSConfig.meta_start``:
+GMPS is an offline meta-learner trained from an initialisation, and the authors' continual prototype restarted it
+after every task). ``gmps_ppo_last`` and ``gmps_ppo_is_last`` start it from the last meta policy instead, a
+stronger baseline than the paper's (the next task's RL step started from that policy, so the start differs from
+FTML's only by that task's PPO updates).
+
 Every rung standardises its inner advantages per task or none does (``STANDARDISED_INNER_ADVANTAGES``), so each
 rung adds one feature (``LADDER``).
 
@@ -27,6 +33,7 @@ The paper's other continual baselines:
 from __future__ import annotations
 
 import dataclasses
+import json
 from typing import Any, Callable, Mapping, NamedTuple, Optional
 
 from jcomps import cli, envs, meta, ppo
@@ -69,6 +76,10 @@ REGISTRY.update({
                                          warm_start=False), comps.named("gmps"), _VANILLA_PG),
     "gmps_ppo": Registered(comps.CoMPSConfig(meta=_NO_IS, warm_start=False), comps.named("gmps_ppo")),
     "gmps_ppo_is": Registered(comps.CoMPSConfig(meta=_META, warm_start=False), comps.named("gmps_ppo_is")),
+    "gmps_ppo_last": Registered(comps.CoMPSConfig(meta=_NO_IS, warm_start=False, meta_start="last"),
+                                comps.named("gmps_ppo_last")),
+    "gmps_ppo_is_last": Registered(comps.CoMPSConfig(meta=_META, warm_start=False, meta_start="last"),
+                                   comps.named("gmps_ppo_is_last")),
     "gmps_ppo_is_x2": Registered(comps.CoMPSConfig(meta=_META, warm_start=False, num_skilled=40),
                                  comps.named("gmps_ppo_is_x2")),
     "maml_tl": Registered(maml_tl.MAMLTLConfig(), maml_tl.make),
@@ -90,6 +101,31 @@ LADDER: tuple[tuple[str, str, str], ...] = (
     ("gmps_ppo_is", "gmps_ppo_is_x2", "skilled data x2"),
     ("gmps_ppo_is", "comps", "FTML warm start"),
 )
+# Config fields added with a default that differs from what runs made before them did: the field's dotted path
+# within a method's config -> a function of such a run's stored config (``run.json``'s ``methods[name]``) giving
+# the value the run had, or None where the field changed nothing for it (it takes the default).
+EARLIER_VALUES: dict[str, Callable[[Mapping], Any]] = {
+    # Before issue 43 the rungs without the warm start started their meta step from the last meta policy.
+    "meta_start": lambda stored: None if stored.get("warm_start", True) else "last",
+}
+
+
+def with_earlier_values(stored: Mapping) -> dict:
+    """A stored method config (``run.json``'s ``methods[name]``) with the fields of ``EARLIER_VALUES`` it lacks set
+    to the values the run had (a copy; fields it has, and fields whose default it had, are left as they are)."""
+    out = json.loads(json.dumps(stored))
+    for path, earlier in EARLIER_VALUES.items():
+        *parents, leaf = path.split(".")
+        node = out
+        for key in parents:
+            node = node.get(key) if isinstance(node, dict) else None
+        if isinstance(node, dict) and leaf not in node:
+            value = earlier(stored)
+            if value is not None:
+                node[leaf] = value
+    return out
+
+
 METHODS = tuple(REGISTRY)
 """The methods jcomps ships (``names()`` also lists any registered since)."""
 
@@ -145,7 +181,8 @@ def resolve_config(name: str, family: Family | str, *, stored: Optional[Mapping]
     1. its registered default (``REGISTRY``);
     2. the family's calibrated settings (``default_config``), apart from the fields of the method's RL step;
     3. ``stored``: the config a run recorded (``run.json``'s ``methods[name]``, on ``--resume`` and in reports);
-       fields it lacks (an older run) keep the layers below;
+       fields it lacks (an older run) keep the layers below, apart from those whose default changed since
+       (``EARLIER_VALUES``: the run's own value);
     4. ``shared``: {field: value} of the options every method shares (``--learning-rate``), set wherever the field
        occurs in the config, nested parts included;
     5. ``num_tasks``: a config with task slots (``task_slots``) gets one per task, unless layer 3 or 4 gave them;
@@ -156,7 +193,7 @@ def resolve_config(name: str, family: Family | str, *, stored: Optional[Mapping]
     """
     config = default_config(name, family)
     if stored:
-        config = cli.config_from_dict(config, stored)
+        config = cli.config_from_dict(config, with_earlier_values(stored))
     if shared:
         config = cli.with_shared(config, shared)
     given = set(stored or ()) | set(shared or ())
@@ -185,6 +222,6 @@ def env_steps_per_iteration(name: str, family: Family, config=None) -> int:
     return base.env_steps_per_iteration(make(name, family, config))
 
 
-__all__ = ["LADDER", "LADDER_FEATURES", "METHODS", "Method", "collection", "REGISTRY", "Registered", "TaskMetrics",
-           "config_class", "default_config", "env_steps_per_iteration", "make", "names", "register", "resolve_config",
-           "task_slots", "with_family_settings"]
+__all__ = ["EARLIER_VALUES", "LADDER", "LADDER_FEATURES", "METHODS", "Method", "collection", "REGISTRY", "Registered",
+           "TaskMetrics", "config_class", "default_config", "env_steps_per_iteration", "make", "names", "register",
+           "resolve_config", "task_slots", "with_earlier_values", "with_family_settings"]

@@ -23,6 +23,9 @@ from jcomps.envs.base import Family
 from jcomps.methods.base import Method, TaskMetrics
 
 
+META_STARTS = ("fresh", "last")
+
+
 @dataclasses.dataclass(frozen=True)
 class CoMPSConfig(ppo.PPOBased):
     """Configuration of CoMPS."""
@@ -40,7 +43,13 @@ class CoMPSConfig(ppo.PPOBased):
     recent_fraction: float = 0.05
     """D_i comes from the last min(M, ceil(recent_fraction * N)) iterations (paper: 0.05)."""
     warm_start: bool = True
-    """Start each meta step from the policy that just finished the task (FTML); off: from the last meta policy."""
+    """Start each meta step from the policy that just finished the task (FTML); off: from ``meta_start``."""
+    meta_start: str = "fresh"
+    """Where the meta step starts when ``warm_start`` is off: ``fresh``, a fresh initialisation of the policy after
+    every task (the family's initialiser, a key of its own per task slot: GMPS as an offline meta-learner trained
+    from an initialisation, as the authors' continual prototype restarted it); ``last``, the last meta policy
+    (a stronger baseline than the paper's: the next RL step started there, so it is close to the FTML start).
+    Either way with the newest observation statistics. Ignored with ``warm_start``."""
     reset_optimizer: bool = True
     """Start each task's RL step with a fresh PPO Adam state."""
 
@@ -50,13 +59,20 @@ class CoMPSConfig(ppo.PPOBased):
         check_field(self.num_skilled >= 1, "num_skilled", self.num_skilled, "an integer >= 1")
         check_field(self.num_offpolicy >= 1, "num_offpolicy", self.num_offpolicy, "an integer >= 1")
         check_field(0 < self.recent_fraction <= 1, "recent_fraction", self.recent_fraction, "a number in (0, 1]")
+        check_field(self.meta_start in META_STARTS, "meta_start", self.meta_start, ", ".join(META_STARTS))
+
+    def fresh_start(self) -> bool:
+        """Whether the meta step starts from a fresh initialisation after every task."""
+        return not self.warm_start and self.meta_start == "fresh"
 
 
 class CoMPSState(NamedTuple):
     """Everything CoMPS carries between tasks.
 
     params: PPO actor-critic (policy = θ_i); opt_state: PPO Adam; meta: MetaState (meta policy, per-task value
-    heads, Adam states); stores: SequenceStores; rng; task_index: i32[].
+    heads, Adam states); stores: SequenceStores; rng; task_index: i32[]; fresh: with ``meta_start="fresh"`` (and no
+    warm start), the fresh policy initialisations the meta step starts from, one per task slot (leading axis
+    [max_tasks]), else None.
     """
 
     params: networks.ActorCriticParams
@@ -65,6 +81,7 @@ class CoMPSState(NamedTuple):
     stores: buffers.SequenceStores
     rng: jax.Array
     task_index: jax.Array
+    fresh: Optional[dict] = None
 
 
 def meta_config(config: CoMPSConfig) -> meta.MetaConfig:
@@ -77,6 +94,20 @@ def meta_config(config: CoMPSConfig) -> meta.MetaConfig:
         if getattr(out, name) is None:
             object.__setattr__(out, name, value)
     return out
+
+
+def meta_start(config: CoMPSConfig, state: CoMPSState, learnt: dict) -> dict:
+    """The policy the meta step after a task starts from: with the warm start (FTML), ``learnt``, the policy that
+    has just learnt the task; else the task slot's fresh initialisation (``meta_start="fresh"``) or the last meta
+    policy (``"last"``), either with ``learnt``'s observation statistics (they describe the data the policy will
+    see, not a learnt quantity)."""
+    if config.warm_start:
+        return learnt
+    if config.fresh_start():
+        base = jax.tree.map(lambda x: jax.lax.dynamic_index_in_dim(x, state.task_index, keepdims=False), state.fresh)
+    else:
+        base = state.meta.policy
+    return {**base, "obs_norm": learnt["obs_norm"]}
 
 
 def make(family: Family, config: CoMPSConfig = CoMPSConfig(), progress_fn: Optional[ProgressFn] = None,
@@ -95,7 +126,14 @@ def make(family: Family, config: CoMPSConfig = CoMPSConfig(), progress_fn: Optio
         meta_state = meta.MetaState(params.policy, value, policy_opt.init(params.policy), value_opt.init(value))
         stores = buffers.sequence_init_like(buffers.rollout_example(family, B), config.max_tasks,
                                             config.num_skilled, config.num_offpolicy)
-        return CoMPSState(params, optimizer.init(params), meta_state, stores, rng, jnp.int32(0))
+        fresh = None
+        if config.fresh_start():
+            # Drawn here, one slot at a time (lax.map), not per task inside the vmapped program: a batched QR in the
+            # orthogonal initialiser can deadlock XLA:CPU's pool (continual.init_seeds).
+            rng, k_fresh = jax.random.split(rng)
+            fresh = jax.lax.map(lambda k: ppo.init_params(config.ppo, family, k).policy,
+                                jax.random.split(k_fresh, config.max_tasks))
+        return CoMPSState(params, optimizer.init(params), meta_state, stores, rng, jnp.int32(0), fresh)
 
     def observe(aux, traj, iteration):
         del iteration
@@ -117,11 +155,7 @@ def make(family: Family, config: CoMPSConfig = CoMPSConfig(), progress_fn: Optio
         skilled, recent = out.aux
         offpolicy = buffers.sample_offpolicy(recent, config.num_offpolicy, k_off)
         stores = buffers.sequence_write(state.stores, state.task_index, skilled, offpolicy)
-        # Without the warm start the meta step starts from the last meta policy, with the newest observation
-        # statistics (they describe the data the policy will see, not a learnt quantity).
-        start = out.params.policy if config.warm_start else {**state.meta.policy,
-                                                             "obs_norm": out.params.policy["obs_norm"]}
-        meta_state = state.meta._replace(policy=start)
+        meta_state = state.meta._replace(policy=meta_start(config, state, out.params.policy))
         if mconfig.value_init == "rl_step":  # the RL step's critic has just been fitted to the data D_i holds
             meta_state = meta_state._replace(value=meta.set_head(meta_state.value, state.task_index,
                                                                  out.params.value))
@@ -132,7 +166,7 @@ def make(family: Family, config: CoMPSConfig = CoMPSConfig(), progress_fn: Optio
         meta_state, steps = meta.meta_train(mconfig, meta_state, stores, k_meta, progress_fn=report)
         after = meta.slot_diagnostics(mconfig, meta_state.policy, meta_state.value, stores)
         params = out.params._replace(policy=meta_state.policy)
-        new = CoMPSState(params, out.opt_state, meta_state, stores, rng, state.task_index + 1)
+        new = CoMPSState(params, out.opt_state, meta_state, stores, rng, state.task_index + 1, state.fresh)
         return new, TaskMetrics(out.iterations, out.solved, out.metrics, meta.MetaMetrics(steps, before, after))
 
     return Method(name, config, family, init, learn_task)
