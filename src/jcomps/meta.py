@@ -4,7 +4,8 @@ For every seen task j (a slot of ``buffers.SequenceStores`` with ``task_valid``)
 
 - inner: φ_j = θ + α ∇_θ J_j(θ), J_j(θ) = (1/N) Σ ρ_i log π_θ(a_i|s_i) Â_i on m trajectories of D_j, with
   clipped importance weights ρ_i and V-trace advantages Â from value head j (both constants: no gradient);
-- outer: L_BC(φ_j) = −mean log π_{φ_j}(a|s) on a minibatch of D*_j;
+- outer: L_BC(φ_j) = −mean log π_{φ_j}(a|s) on a minibatch of D*_j (or the mean action's squared error,
+  ``outer_loss``); L_BC(θ) − L_BC(φ_j), what the inner step gains, is reported (``SlotStats.inner_gain``);
 - θ ← Adam(θ, ∇_θ mean_j L_BC(φ_j)), the gradient flowing *through* the inner step (second order) unless
   ``first_order``. The value heads (one value MLP per task slot) learn V-trace targets by l2 at every outer step,
   in the RL step's reward units (``reward_scale``); a new task's head starts from the RL step's trained value

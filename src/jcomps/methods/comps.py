@@ -3,8 +3,10 @@
 Per task i: the RL step (PPO from θ_i) while the experience stores are filled (D*_i: top-20 trajectories by
 return, kept incrementally; D_i: 100 trajectories from the last ⌈0.05·N⌉ iterations with behaviour
 log-probabilities); then the meta step over every seen task j ≤ i, warm-started (FTML) from the policy that just
-finished task i; θ_{i+1} is its result. Task i's value head starts from the RL step's value function, and the meta
-step's V-trace runs in the RL step's reward units (``meta.MetaConfig.value_init``, ``reward_scale``).
+finished task i (the ladder's rungs without FTML: from a fresh initialisation, or the last meta policy,
+``CoMPSConfig.meta_start``); θ_{i+1} is its result. Task i's value head starts from the RL step's value
+function, and the meta step's V-trace runs in the RL step's reward units (``meta.MetaConfig.value_init``,
+``reward_scale``).
 """
 
 from __future__ import annotations
