@@ -136,6 +136,8 @@ def test_where_the_meta_step_starts():
         learnt_statistics(state.meta.policy)
     w = np.asarray(s0.fresh["mean"][0]["w"])
     assert not np.allclose(w[0], w[1]) and not np.allclose(w[0], np.asarray(s0.params.policy["mean"][0]["w"]))
+    # The fresh draws take nothing from the seed's other keys: the RL step of task 1 is the other rungs' own.
+    chex.assert_trees_all_equal(s1.stores, warm[1].stores)
     last = run(warm_start=False, meta_start="last")
     assert last[0].fresh is None
     for state in last[1:]:

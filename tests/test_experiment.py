@@ -187,7 +187,8 @@ def test_a_stopped_run_reports_the_tasks_every_method_has_finished(runner, merge
 
 
 @pytest.mark.parametrize("argv,message", [
-    (["--methods", "maml"], "methods='maml'; allowed: ppo_tl, ppo, comps, gmps, gmps_ppo, gmps_ppo_is, gmps_ppo_is_x2"),
+    (["--methods", "maml"], "methods='maml'; allowed: ppo_tl, ppo, comps, gmps, gmps_ppo, gmps_ppo_is, gmps_ppo_last, "
+                            "gmps_ppo_is_last, gmps_ppo_is_x2"),
     (["--family", "humanoid"], "family='humanoid'; allowed:"),
     (["--budget", "0"], "budget=0"),
     (["--budget", "-3"], "budget=-3"),
@@ -202,7 +203,7 @@ def test_a_stopped_run_reports_the_tasks_every_method_has_finished(runner, merge
     (["--num-tasks", "41"], re.escape("--num-tasks must be in [1, 40]")),
     (["--sequence", "shuffled"], "sequence='shuffled'"),
     (["--methods", "comps", "--num-tasks", "5", "--max-tasks", "3"], "--max-tasks 3 is smaller than --num-tasks 5"),
-    (["--methods", "comps", "--inner-learning-rate", "0"], "inner_learning_rate=0.0"),
+    (["--methods", "comps", "--inner-learning-rate", "-0.1"], "inner_learning_rate=-0.1"),
     (["--backward-tasks", "-1"], "backward_tasks=-1"),
     (["--learnt-eval", "never"], "learnt_eval='never'; allowed: chunk, end"),
     (["--devices", "0"], "--devices must be >= 1"),

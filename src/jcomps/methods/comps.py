@@ -26,6 +26,9 @@ from jcomps.methods.base import Method, TaskMetrics
 
 
 META_STARTS = ("fresh", "last")
+FRESH_STREAM = 43
+"""``fold_in`` data of the key stream the fresh initialisations are drawn from (any constant: it only has to keep
+that stream apart from the splits of the seed's key)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -122,6 +125,7 @@ def make(family: Family, config: CoMPSConfig = CoMPSConfig(), progress_fn: Optio
     B = config.ppo.num_trajectories
 
     def init(rng: jax.Array) -> CoMPSState:
+        k_fresh = rng
         rng, k_ac, k_v = jax.random.split(rng, 3)
         params = ppo.init_params(config.ppo, family, k_ac)
         value = meta.init_value_heads(k_v, family.obs_size, config.ppo.hidden_sizes, config.max_tasks)
@@ -131,10 +135,10 @@ def make(family: Family, config: CoMPSConfig = CoMPSConfig(), progress_fn: Optio
         fresh = None
         if config.fresh_start():
             # Drawn here, one slot at a time (lax.map), not per task inside the vmapped program: a batched QR in the
-            # orthogonal initialiser can deadlock XLA:CPU's pool (continual.init_seeds).
-            rng, k_fresh = jax.random.split(rng)
+            # orthogonal initialiser can deadlock XLA:CPU's pool (continual.init_seeds). From a stream folded out
+            # of the seed's key, so every other key is the same as the other rungs' (task 1 is the same PPO run).
             fresh = jax.lax.map(lambda k: ppo.init_params(config.ppo, family, k).policy,
-                                jax.random.split(k_fresh, config.max_tasks))
+                                jax.random.split(jax.random.fold_in(k_fresh, FRESH_STREAM), config.max_tasks))
         return CoMPSState(params, optimizer.init(params), meta_state, stores, rng, jnp.int32(0), fresh)
 
     def observe(aux, traj, iteration):
