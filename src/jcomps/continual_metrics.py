@@ -16,7 +16,8 @@ import numpy as np
 BOOTSTRAP_SAMPLES = 2_000
 
 
-def _nanmean(x, axis=None):
+def nanmean(x, axis=None):
+    """``np.nanmean`` without the warning where a slice is all NaN (that slice's mean is NaN)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # an all-NaN slice is NaN, as it should be
         return np.nanmean(x, axis=axis)
@@ -36,7 +37,7 @@ def forgetting(when_learnt, later, valid) -> np.ndarray:
 def average_performance(success, valid) -> np.ndarray:
     """f64[S]: each seed's mean success over the tasks evaluated (``valid`` bool[S, N]); Continual World's P(t)
     at the time of the evaluation. NaN for a seed with none."""
-    return _nanmean(np.where(valid, np.asarray(success, np.float64), np.nan), axis=-1)
+    return nanmean(np.where(valid, np.asarray(success, np.float64), np.nan), axis=-1)
 
 
 def auc(success_rate, valid, horizon: int) -> np.ndarray:
@@ -70,7 +71,7 @@ def reference_by_task(reference, reference_ids, ids) -> np.ndarray:
     for task in np.unique(ids):
         held = reference_ids == task
         if held.any():
-            out[ids == task] = _nanmean(reference[held])
+            out[ids == task] = nanmean(reference[held])
     return out
 
 

@@ -339,8 +339,7 @@ def head_objective(config: MetaConfig, policy, head, batch: TaskBatch):
     advantages, targets, weights = _vtrace_terms(config, log_prob, values, bootstrap, off)
     adapted = adapt(config, policy, off, advantages, log_prob_vjp)
     bc = outer_loss(config, adapted, batch.skilled_obs, batch.skilled_action, batch.skilled_valid)
-    bc_theta = outer_loss(config, jax.lax.stop_gradient(policy), batch.skilled_obs, batch.skilled_action,
-                          batch.skilled_valid)
+    bc_theta = outer_loss(config, policy, batch.skilled_obs, batch.skilled_action, batch.skilled_valid)
     value_l2 = masked_mean(jnp.square(values - targets), off.traj.valid * off.mask[None, :])
     return bc + value_l2, _stats(config, bc, value_l2, values, bootstrap, targets, advantages, weights, bc_theta,
                                  off)

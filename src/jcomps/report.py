@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import json
 import os
-import warnings
 from typing import Optional
 
 import numpy as np
@@ -288,13 +287,6 @@ def probability_of_improvement(raw: results_.RawResults, baseline_raw: results_.
             **statistics.probability_of_fewer_iterations(raw.task.iterations, baseline_raw.task.iterations)}
 
 
-def _nanmean(x, axis):
-    """``np.nanmean``, NaN without a warning where a slice is all NaN (unseen slots; a gain a run did not measure)."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        return np.nanmean(x, axis=axis)
-
-
 def meta_summary(meta) -> dict:
     """The health of a method's meta phases (``jcomps.meta.MetaMetrics`` with leading [seeds, tasks]) for
     ``results.json``: per seed and task, means over the seen slots at the start (before the first outer step,
@@ -306,7 +298,7 @@ def meta_summary(meta) -> dict:
     end = {k: np.asarray(v, np.float64) for k, v in meta.end._asdict().items()}
     seeds, tasks, _ = end["value_ev"].shape
     newest = lambda x: x[:, np.arange(tasks), np.arange(tasks)]  # noqa: E731 - slot t after task t
-    over_seen = lambda x: _nanmean(x, axis=-1)  # noqa: E731 - unseen slots are NaN
+    over_seen = lambda x: cm.nanmean(x, axis=-1)  # noqa: E731 - unseen slots (and gains not measured) are NaN
     rows = lambda x: [[_json_float(round(float(v), 6)) for v in row] for row in x]  # noqa: E731
     out = {
         "statistic": "per seed and task: mean over the seen tasks' slots, each on its whole stores, at the start "
@@ -334,7 +326,7 @@ def meta_summary(meta) -> dict:
                                     for s in range(seeds)],
     }
     for key in ("value_ev_end", "newest_value_ev_start", "rho_end", "inner_gain_end"):
-        out[key + "_mean"] = [_json_float(round(float(v), 6)) for v in _nanmean(
+        out[key + "_mean"] = [_json_float(round(float(v), 6)) for v in cm.nanmean(
             np.asarray([[np.nan if v is None else v for v in row] for row in out[key]], np.float64), axis=0)]
     return out
 

@@ -32,8 +32,8 @@ The paper's other continual baselines:
 
 from __future__ import annotations
 
+import copy
 import dataclasses
-import json
 from typing import Any, Callable, Mapping, NamedTuple, Optional
 
 from jcomps import cli, envs, meta, ppo
@@ -113,7 +113,7 @@ EARLIER_VALUES: dict[str, Callable[[Mapping], Any]] = {
 def with_earlier_values(stored: Mapping) -> dict:
     """A stored method config (``run.json``'s ``methods[name]``) with the fields of ``EARLIER_VALUES`` it lacks set
     to the values the run had (a copy; fields it has, and fields whose default it had, are left as they are)."""
-    out = json.loads(json.dumps(stored))
+    out = copy.deepcopy(dict(stored))
     for path, earlier in EARLIER_VALUES.items():
         *parents, leaf = path.split(".")
         node = out
