@@ -113,6 +113,8 @@ def test_the_ablation_ladder_removes_one_feature_per_rung():
     assert d["gmps"] == dataclasses.replace(d["gmps_ppo"], ppo=dataclasses.replace(
         comps.ppo, num_updates=1, minibatch_size=0, surrogate="vanilla"))
     assert comps.ppo.num_updates == envs.settings("ant_goal", "ppo")["num_updates"]
+    # The meta step's grid-chosen outer learning rate is a family setting, so every rung has it.
+    assert comps.meta.outer_learning_rate == envs.settings("ant_goal", "meta")["outer_learning_rate"] == 0.001
 
 
 def test_set_changes_one_method_and_is_recorded(runner, tmp_path):
