@@ -117,7 +117,7 @@ def parse_args(argv=None):
                              "different ones are refused)")
     distributed.add_args(parser)
     cli.add_config_args(parser, [experiment.RunConfig, continual.EvalConfig])
-    cli.add_config_args(parser, [methods.config_class(m) for m in methods.METHODS])
+    cli.add_config_args(parser, [methods.config_class(m) for m in methods.METHODS], envs.settings_by_field())
     args = parser.parse_args(argv)
     if args.devices is not None and args.devices < 1:
         parser.error(f"--devices must be >= 1, got {args.devices}")

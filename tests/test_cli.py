@@ -28,6 +28,8 @@ def test_help_lists_every_option(runner, capsys):
     for cls in (methods.config_class(m) for m in methods.METHODS):
         for name, *_ in cli.flat_fields(cls):
             assert "--" + name.replace("_", "-") in text, name
+    # Where a family's calibrated settings replace a default, the help says so.
+    assert "ant_dir: 0.001" in " ".join(text.split()), "the MuJoCo families' outer learning rate"
 
 
 def test_options_build_the_config(runner):
@@ -98,8 +100,9 @@ def test_runner_config_is_the_registered_default_fresh_and_on_resume(runner, nam
             assert resumed.configs[method] == _registered_default(method), method
 
 
-def test_the_ablation_ladder_removes_one_feature_per_rung():
-    d = {name: methods.default_config(name, "ant_goal") for name in methods.METHODS}
+@pytest.mark.parametrize("family", ["cheetah_vel", "ant_goal", "ant_dir"])
+def test_the_ablation_ladder_removes_one_feature_per_rung(family):
+    d = {name: methods.default_config(name, family) for name in methods.METHODS}
     comps = d["comps"]
     assert comps.warm_start and comps.meta.importance_sampling and comps.meta.vtrace_baseline
     assert d["gmps_ppo_is_x2"] == dataclasses.replace(comps, warm_start=False, num_skilled=40)
@@ -112,9 +115,15 @@ def test_the_ablation_ladder_removes_one_feature_per_rung():
     # family's calibrated number of PPO steps.
     assert d["gmps"] == dataclasses.replace(d["gmps_ppo"], ppo=dataclasses.replace(
         comps.ppo, num_updates=1, minibatch_size=0, surrogate="vanilla"))
-    assert comps.ppo.num_updates == envs.settings("ant_goal", "ppo")["num_updates"]
-    # The meta step's grid-chosen outer learning rate is a family setting, so every rung has it.
-    assert comps.meta.outer_learning_rate == envs.settings("ant_goal", "meta")["outer_learning_rate"] == 0.001
+    assert comps.ppo.num_updates == envs.settings(family, "ppo")["num_updates"]
+    # The rungs without FTML meta-train from a fresh initialisation; their `_last` variants from the last meta
+    # policy, and differ in nothing else.
+    assert d["gmps_ppo"].meta_start == d["gmps_ppo_is"].meta_start == "fresh"
+    assert d["gmps_ppo_last"] == dataclasses.replace(d["gmps_ppo"], meta_start="last")
+    assert d["gmps_ppo_is_last"] == dataclasses.replace(d["gmps_ppo_is"], meta_start="last")
+    # The meta step's grid-chosen outer learning rate is a setting of the MuJoCo families, so every rung has it.
+    assert {d[name].meta.outer_learning_rate for name in d if name.startswith(("gmps", "comps"))} \
+        == {envs.settings(family, "meta")["outer_learning_rate"]} == {0.001}
 
 
 def test_set_changes_one_method_and_is_recorded(runner, tmp_path):

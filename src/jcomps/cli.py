@@ -94,9 +94,13 @@ def _parser_for(tp):
     return {int: _parse_int, float: _parse_float}.get(tp, tp)
 
 
-def add_config_args(parser: argparse.ArgumentParser, classes) -> None:
-    """Adds one ``--option`` per distinct leaf field of the config dataclasses ``classes`` (default: unset)."""
+def add_config_args(parser: argparse.ArgumentParser, classes, family_values: Optional[dict] = None) -> None:
+    """Adds one ``--option`` per distinct leaf field of the config dataclasses ``classes`` (default: unset).
+
+    ``family_values`` ({field: {family: value}}, ``jcomps.envs.settings_by_field()``) shows in the help where a family's
+    calibrated settings replace a field's default."""
     seen = {o for a in parser._actions for o in a.option_strings}
+    family_values = family_values or {}
     for cls in classes:
         group = parser.add_argument_group(f"{cls.__name__} options")
         for name, tp, default, doc in flat_fields(cls):
@@ -104,7 +108,13 @@ def add_config_args(parser: argparse.ArgumentParser, classes) -> None:
             if flag in seen:
                 continue
             seen.add(flag)
-            shown = " ".join(map(str, default)) if isinstance(default, tuple) else default
+            show = lambda v: " ".join(map(str, v)) if isinstance(v, tuple) else str(v)  # noqa: E731
+            shown = show(default)
+            by_value: dict = {}
+            for family, value in family_values.get(name, {}).items():
+                if value != default:
+                    by_value.setdefault(show(value), []).append(family)
+            shown += "".join(f"; {', '.join(fams)}: {v}" for v, fams in by_value.items())
             nargs = "+" if typing.get_origin(tp) is tuple else None
             group.add_argument(flag, dest=f"cfg_{name}", type=_parser_for(tp), nargs=nargs, default=None,
                                metavar=name.upper(), help=f"{doc} (default: {shown})".replace("%", "%%"))

@@ -10,7 +10,7 @@ one entry that is not an array; ``host`` passes it through unchanged), and carri
 - ``META_STEP``, after every outer update of a meta-training phase (``meta.meta_train``): ``meta_step``,
   ``meta_steps``, ``bc_loss``, and the meta step's health as means over the seen tasks: ``value_l2``, ``value_ev``
   (the value heads' explained variance of the returns), ``adv_abs`` (mean |Â| of the inner step), ``rho`` (mean
-  clipped importance weight);
+  clipped importance weight), ``inner_gain`` (the outer loss before the inner step minus after it);
 - ``COMPRESS_ITERATION``, after every iteration of a compress phase (``pnc``): ``compress_iteration``,
   ``compress_iterations``, ``kl``;
 - methods add ``task`` (the index of the task being learnt) to all of these;

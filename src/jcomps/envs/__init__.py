@@ -59,6 +59,17 @@ def settings(family: Family | str, part: str) -> Mapping[str, Any]:
     return _REGISTRY.lookup(family if isinstance(family, str) else family.name).settings.get(part, {})
 
 
+def settings_by_field() -> dict[str, dict[str, Any]]:
+    """{field: {family: value}}: every registered family's calibrated settings by field name (all parts), as the
+    command line's help shows them."""
+    out: dict[str, dict[str, Any]] = {}
+    for name in names():
+        for fields in _REGISTRY.lookup(name).settings.values():
+            for field, value in fields.items():
+                out.setdefault(field, {})[name] = value
+    return out
+
+
 @functools.cache
 def make(name: str) -> Family:
     """The family called ``name`` (one of ``names()``); the same object on every call."""
@@ -188,5 +199,5 @@ def held_out(family: Family | str):
 
 __all__ = [
     "EnvState", "FAMILIES", "Family", "Registered", "SEQUENCE_KINDS", "Settings", "held_out", "make", "names",
-    "register", "sequence", "sequence_values", "settings", "strong", "task_at", "validate_values",
+    "register", "sequence", "sequence_values", "settings", "settings_by_field", "strong", "task_at", "validate_values",
 ]
