@@ -143,6 +143,16 @@ def test_where_the_meta_step_starts():
     for state in last[1:]:
         chex.assert_trees_all_equal(state.meta.policy["mean"], last[0].meta.policy["mean"])
         learnt_statistics(state.meta.policy)
+    # The warm start with the last meta policy's std: the learnt mean, the std the meta step last had (with no
+    # meta-training steps, the initial one), where PPO has moved its own.
+    std = run(warm_start_std="meta")
+    chex.assert_trees_all_equal(std[1].meta.policy["mean"], warm[1].meta.policy["mean"])  # task 1: the same PPO
+    assert not np.allclose(warm[1].meta.policy["log_std"], std[0].meta.policy["log_std"])
+    for state in std[1:]:
+        chex.assert_trees_all_equal(state.meta.policy["log_std"], std[0].meta.policy["log_std"])
+        learnt_statistics(state.meta.policy)
+    with pytest.raises(ValueError, match="warm_start_std"):
+        comps.CoMPSConfig(warm_start_std="init")
     # Ignored with the warm start.
     config = comps.CoMPSConfig(ppo=SMALL_PPO, meta=no_meta, max_tasks=3, num_skilled=3, num_offpolicy=5,
                                meta_start="last")

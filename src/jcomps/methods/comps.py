@@ -26,6 +26,7 @@ from jcomps.methods.base import Method, TaskMetrics
 
 
 META_STARTS = ("fresh", "last")
+WARM_START_STDS = ("learnt", "meta")
 FRESH_STREAM = 43
 """``fold_in`` data of the key stream the fresh initialisations are drawn from (any constant: it only has to keep
 that stream apart from the splits of the seed's key)."""
@@ -49,6 +50,11 @@ class CoMPSConfig(ppo.PPOBased):
     """D_i comes from the last min(M, ceil(recent_fraction * N)) iterations (paper: 0.05)."""
     warm_start: bool = True
     """Start each meta step from the policy that just finished the task (FTML); off: from ``meta_start``."""
+    warm_start_std: str = "learnt"
+    """With the warm start, where the meta step's starting exploration std comes from: ``learnt``, the policy that
+    has just learnt the task (the paper's FTML: the whole policy); ``meta``, the last meta policy (the mean
+    warm-started, the std as the last meta step left it: a diagnostic that separates what FTML carries in the
+    mean from the narrower std PPO has reached). Ignored without the warm start."""
     meta_start: str = "fresh"
     """Where the meta step starts when ``warm_start`` is off: ``fresh``, a fresh initialisation of the policy after
     every task (the family's initialiser, a key of its own per task slot: GMPS as an offline meta-learner trained
@@ -65,6 +71,8 @@ class CoMPSConfig(ppo.PPOBased):
         check_field(self.num_offpolicy >= 1, "num_offpolicy", self.num_offpolicy, "an integer >= 1")
         check_field(0 < self.recent_fraction <= 1, "recent_fraction", self.recent_fraction, "a number in (0, 1]")
         check_field(self.meta_start in META_STARTS, "meta_start", self.meta_start, ", ".join(META_STARTS))
+        check_field(self.warm_start_std in WARM_START_STDS, "warm_start_std", self.warm_start_std,
+                    ", ".join(WARM_START_STDS))
 
     def fresh_start(self) -> bool:
         """Whether the meta step starts from a fresh initialisation after every task."""
@@ -105,8 +113,11 @@ def meta_start(config: CoMPSConfig, state: CoMPSState, learnt: dict) -> dict:
     """The policy the meta step after a task starts from: with the warm start (FTML), ``learnt``, the policy that
     has just learnt the task; else the task slot's fresh initialisation (``meta_start="fresh"``) or the last meta
     policy (``"last"``), either with ``learnt``'s observation statistics (they describe the data the policy will
-    see, not a learnt quantity)."""
+    see, not a learnt quantity). With the warm start and ``warm_start_std="meta"``, ``learnt`` with the last meta
+    policy's std."""
     if config.warm_start:
+        if config.warm_start_std == "meta":
+            return {**learnt, "log_std": state.meta.policy["log_std"]}
         return learnt
     if config.fresh_start():
         base = jax.tree.map(lambda x: jax.lax.dynamic_index_in_dim(x, state.task_index, keepdims=False), state.fresh)
