@@ -11,13 +11,15 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from jcomps import experiment
+from jcomps import experiment, statistics
+from jcomps import continual_metrics as cm
 from jcomps.checkpoint import RunError
 
 
 class Progress:
     """Host-side progress of one program: a status line at most every ``interval`` seconds, from the callbacks
-    of every RL iteration (program, task, iteration, success rate, elapsed, remaining) and of every outer update
+    of every RL iteration (program, task, iteration, success rate, the critic's explained variance, elapsed,
+    remaining) and of every outer update
     of a meta-training phase (program, task, meta step, outer BC loss, elapsed, remaining).
 
     ``members`` (a program of several grid points): each member's name (its grid point and seed); the line then
@@ -34,6 +36,7 @@ class Progress:
         self.task = np.full(seeds, start_task, np.int64)
         self.iteration = np.zeros(seeds, np.int64)
         self.success = np.zeros(seeds)
+        self.value_ev = np.full(seeds, np.nan)  # the RL step's critic: each member's latest measured fit
         self.meta_loss = np.full(seeds, np.nan)
         self.meta_health = np.full((seeds, 5), np.nan)  # value l2, value EV on returns, mean |Â|, mean ρ, inner gain
         self.heldout_begin()
@@ -63,9 +66,13 @@ class Progress:
                                 f"{int(h.max())} (slowest {int(h.min())}) | elapsed "
                                 f"{_clock(time.time() - self.heldout_start)}")
 
-    def record_iteration(self, member: int, task: int, iteration: int, success_rate: float):
-        """After every RL iteration of a member."""
+    def record_iteration(self, member: int, task: int, iteration: int, success_rate: float,
+                         value_ev: float = float("nan")):
+        """After every RL iteration of a member (``value_ev``: the critic's fit its update measured, NaN if none;
+        the line shows the members' latest measured)."""
         self.task[member], self.iteration[member], self.success[member] = task, iteration, success_rate
+        if np.isfinite(value_ev):
+            self.value_ev[member] = value_ev
         self._throttled(self.line)
 
     def record_meta_step(self, member: int, task: int, step: int, steps: int, loss: float,
@@ -123,8 +130,9 @@ class Progress:
     def line(self) -> str:
         lo, hi = int(self.task.min()) + 1, int(self.task.max()) + 1
         tasks = f"{lo}" if lo == hi else f"{lo}-{hi}"
+        ev = "" if np.all(np.isnan(self.value_ev)) else f" critic EV {float(np.nanmean(self.value_ev)):.2f}"
         return (f"[{self.name}] task {tasks}/{self.num_tasks} iteration {int(self.iteration.max())} success "
-                f"{float(self.success.mean()):.2f}{self._behind()} | elapsed {_clock(time.time() - self.start)} "
+                f"{float(self.success.mean()):.2f}{ev}{self._behind()} | elapsed {_clock(time.time() - self.start)} "
                 f"remaining {self._remaining_text()}")
 
 
@@ -215,7 +223,8 @@ class Console:
 
     @staticmethod
     def _iteration(progress: Progress, event):
-        progress.record_iteration(event["member"], event["task"], event["iteration"], event["success_rate"])
+        progress.record_iteration(event["member"], event["task"], event["iteration"], event["success_rate"],
+                                  float(event.get("value_ev", np.nan)))
 
     @staticmethod
     def _meta_step(progress: Progress, event):
@@ -272,11 +281,24 @@ def _tensorboard_writer_class():
 def _report_chunk(log, name, metrics, start, stop, num_tasks):
     its = np.asarray(metrics.task.iterations)[:, :stop - start]
     meta = metrics.task.meta
+    per_it = metrics.task.per_iteration
+    fit = statistics.critic_fit(*(np.asarray(x)[:, :stop - start] for x in (per_it.value_ev, per_it.value_loss,
+                                                                           per_it.valid)))
     for t in range(stop - start):
         log(f"[{name}] task {start + t + 1}/{num_tasks} iterations-to-success per seed: {its[:, t].tolist()} "
-            f"(mean {its[:, t].mean():.1f})")
+            f"(mean {its[:, t].mean():.1f}){critic_text(fit, t)}")
         if meta is not None:
             log(f"[{name}] task {start + t + 1}/{num_tasks} meta phase: {meta_health_text(meta, t, start + t)}")
+
+
+def critic_text(fit, t: int) -> str:
+    """The RL step's critic on task position ``t`` of ``fit`` (``statistics.CriticFit`` [seeds, tasks]), means over
+    seeds: its explained variance of the value targets over the task's updates and at the last, and its value
+    loss; nothing where it was not measured."""
+    ev, last, loss = (cm.nanmean(np.asarray(x)[:, t]) for x in (fit.ev_mean, fit.ev_last, fit.value_loss))
+    if not np.isfinite(ev):
+        return ""
+    return f"; critic EV {ev:.2f} (last update {last:.2f}), value loss {loss:.3g}"
 
 
 def learnt_text(per_task, learnt) -> str:
@@ -338,4 +360,9 @@ def _log_tensorboard(writer, per_task, start, stop):
                                   offset + i + 1)
                 writer.add_scalar(f"lifelong_success/seed{s}", float(task.per_iteration.success_rate[s, t, i]),
                                   offset + i + 1)
+                ev = float(task.per_iteration.value_ev[s, t, i])
+                if np.isfinite(ev):  # measured where the iteration updated
+                    writer.add_scalar(f"critic_ev/seed{s}", ev, offset + i + 1)
+                    writer.add_scalar(f"critic_value_loss/seed{s}", float(task.per_iteration.value_loss[s, t, i]),
+                                      offset + i + 1)
     writer.flush()

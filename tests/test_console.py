@@ -16,7 +16,7 @@ def _chunk_metrics(seeds, tasks, budget, nonfinite_at=None):
     if nonfinite_at is not None:
         nonfinite[nonfinite_at] = 1.0
     task = TaskMetrics(np.full((seeds, tasks), budget, np.int32), np.zeros((seeds, tasks), bool),
-                       IterationMetrics(z - 5.0, z, z, z, z, z, nonfinite, valid))
+                       IterationMetrics(z - 5.0, z, z, z + 0.25, z, z, z + 0.5, nonfinite, valid))
     return continual.ChunkMetrics(task, np.zeros((seeds, tasks, 0), np.float32), np.zeros((seeds, tasks, 0), bool))
 
 
@@ -32,7 +32,7 @@ def test_console_turns_runner_events_into_lines(console, tmp_path):
     show = console.Console(lines.append, str(tmp_path), interval=0.0)
     show(_start_event(family="point_goal", sequence="stationary", seeds=3, padding=1, chunk=1))
     show({"event": "iteration", "program": "comps", "member": 1, "task": 0, "iteration": 3, "success_rate": 0.5,
-          "mean_return": -3.0})
+          "mean_return": -3.0, "value_ev": 0.8})
     show({"event": "meta_step", "program": "comps", "member": 1, "task": 0, "meta_step": 7, "meta_steps": 125,
           "bc_loss": 1.25})
     show({"event": "compress_iteration", "program": "comps", "member": 0, "task": 0, "compress_iteration": 2,
@@ -44,10 +44,11 @@ def test_console_turns_runner_events_into_lines(console, tmp_path):
     show({"event": "done", "program": "comps", "seconds": 75.0})
     assert lines[0] == ("[comps] point_goal stationary, 2 tasks, 3 seeds (+1 to fill the devices, not reported) on 2 "
                         "device(s), budget 4, chunks of 1")
-    assert lines[1].startswith("[comps] task 1/2 iteration 3 success 0.12")
+    assert lines[1].startswith("[comps] task 1/2 iteration 3 success 0.12 critic EV 0.80")
     assert lines[2].startswith("[comps] task 1/2 meta-training step 7/125 bc loss 1.250")
     assert lines[3].startswith("[comps] task 1/2 compress iteration 2/15 kl ")  # pnc's compress phase
-    assert lines[4] == "[comps] task 1/2 iterations-to-success per seed: [4, 4, 4] (mean 4.0)"
+    assert lines[4] == ("[comps] task 1/2 iterations-to-success per seed: [4, 4, 4] (mean 4.0); critic EV 0.50 "
+                        "(last update 0.50), value loss 0.25")
     assert lines[5].startswith("error: [comps] non-finite values (NaN/inf) at seed 2, task 1, iteration 2")
     assert lines[6] == "warning: checkpoint step 2 cannot be read" and lines[7] == "[comps] done in 1m15s"
 

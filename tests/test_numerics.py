@@ -157,3 +157,17 @@ def test_concrete_max_is_the_max_or_none_while_traced():
     seen = []
     jax.jit(lambda x: seen.append(numerics.concrete_max(x)) or x)(jnp.array([1, 2]))
     assert seen == [None]
+
+
+def test_explained_variance_laws():
+    rng = np.random.default_rng(0)
+    target = rng.normal(size=50).astype(np.float32)
+    mask = np.ones(50, np.float32)
+    np.testing.assert_allclose(numerics.masked_explained_variance(target, target, mask), 1.0, atol=1e-6)
+    np.testing.assert_allclose(numerics.masked_explained_variance(target, np.full(50, target.mean()), mask), 0.0,
+                               atol=1e-5)
+    # Masked samples count for nothing, however wrong.
+    mask[:10] = 0.0
+    wrong = target.copy()
+    wrong[:10] = 1e3
+    np.testing.assert_allclose(numerics.masked_explained_variance(target, wrong, mask), 1.0, atol=1e-6)

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jcomps import envs, networks, ppo
+from jcomps import acting, envs, networks, ppo
 
 SMALL = ppo.PPOConfig(num_trajectories=4, num_updates=4, minibatch_size=64, hidden_sizes=(16,), budget=6)
 
@@ -226,3 +226,47 @@ def test_fixed_budget_run_stops_once_solved_and_long_enough(point):
     chex.assert_trees_all_equal(jax.tree.map(lambda x: x[:3], full.metrics), jax.tree.map(lambda x: x[:3],
                                                                                          short.metrics))
     assert int(full.iterations) == int(short.iterations) == 1 and bool(full.solved) and bool(short.solved)
+
+
+CRITIC = ppo.PPOConfig(num_trajectories=4, num_updates=8, minibatch_size=64, hidden_sizes=(16,), budget=20,
+                       discount=0.5, learning_rate=1e-2)
+
+
+def _critic_run(point, reward_of):
+    """PPO (``CRITIC``, the whole budget) on Point Goal with the reward ``reward_of(next_state)``."""
+    def step(state, action, task):
+        nxt = point.step_fn(state, action, task)
+        return nxt._replace(reward=jnp.asarray(reward_of(nxt), jnp.float32))
+
+    out, _ = _run(dataclasses.replace(point, success_threshold=2.0, step_fn=step), CRITIC)
+    return np.asarray(out.metrics.value_loss), np.asarray(out.metrics.value_ev)
+
+
+def test_the_critic_fits_a_constant_reward(point):
+    """A constant reward: the value targets are one constant (the truncation is bootstrapped), which the critic
+    learns, its error going to 0 within the budget's updates."""
+    loss, ev = _critic_run(point, lambda s: -1.0)
+    assert loss[-5:].mean() < 0.02 * loss[0], loss
+    assert np.all(np.isfinite(ev))  # measured at every iteration that updated (all of them here)
+
+
+def test_the_critics_explained_variance_goes_to_one_on_returns_it_can_fit(point):
+    """A reward that is the point's x coordinate: the returns are a smooth function of the state, and the critic's
+    explained variance of them, measured on each batch before its update, rises from below 0 towards 1."""
+    _, ev = _critic_run(point, lambda s: s.obs[0])
+    assert ev[0] < 0.0 and ev[-5:].mean() > 0.9, ev
+
+
+def test_the_reported_explained_variance_is_the_batchs_before_the_update(point):
+    config = dataclasses.replace(SMALL, num_updates=2)
+    params = ppo.init_params(config, point, jax.random.PRNGKey(3))
+    traj = jax.jit(lambda p, k: acting.rollout(point, p.policy, envs.task_at(point, 0), k, config.num_trajectories))(
+        params, jax.random.PRNGKey(4))
+    optimizer = ppo.make_optimizer(config)
+    new, _, terms, _ = ppo.ppo_update(config, optimizer, params, optimizer.init(params), traj, jax.random.PRNGKey(5))
+    flat = ppo.flat_batch(config, params, traj)
+    valid = np.asarray(flat["valid"]) > 0
+    target, value = np.asarray(flat["target"])[valid], np.asarray(flat["value"])[valid]
+    np.testing.assert_allclose(terms.value_ev, 1.0 - np.var(target - value) / np.var(target), rtol=1e-4)
+    np.testing.assert_allclose(ppo.batch_value_ev({**flat, "value": flat["target"]}), 1.0)
+    assert not np.allclose(ppo.batch_value_ev(ppo.flat_batch(config, new, traj)), terms.value_ev)  # it moved

@@ -25,7 +25,7 @@ def _arrays(iterations: np.ndarray, seed: int) -> dict:
         "task.iterations": iterations.astype(np.int32),
         "task.solved": iterations < BUDGET,
         **{f"task.per_iteration.{k}": curve() for k in ("mean_return", "success_rate", "policy_loss", "value_loss",
-                                                         "entropy", "approx_kl")},
+                                                         "entropy", "approx_kl", "value_ev")},
         "task.per_iteration.nonfinite": np.zeros((S, N, BUDGET), np.float32),
         "task.per_iteration.valid": valid,
         "backward_returns": rng.uniform(0.0, 1.0, (S, N, 1)).astype(np.float32),
@@ -101,6 +101,14 @@ def test_results_json_of_a_hand_made_run(run_dir):
         assert "no ppo" in m["forward_transfer"]["note"] and "meta" not in m
         assert m["heldout"]["after_tasks"] == AFTER.tolist() and m["heldout"]["budget"] == 3
         assert [q["tasks"] for q in m["iqm"]] == [[1, 1], [2, 2]]
+        # The critic: over the iterations that updated (every valid one here: the curves are finite).
+        ev, vl = raw["task.per_iteration.value_ev"], raw["task.per_iteration.value_loss"]
+        np.testing.assert_allclose(m["critic"]["value_ev_mean"],
+                                   [[ev[s, t][valid[s, t]].mean() for t in range(N)] for s in range(S)], atol=1e-6)
+        np.testing.assert_allclose(m["critic"]["value_ev_last"], ev[np.arange(S)[:, None], np.arange(N), its - 1],
+                                   atol=1e-6)
+        np.testing.assert_allclose(m["critic"]["value_loss_mean"],
+                                   [[vl[s, t][valid[s, t]].mean() for t in range(N)] for s in range(S)], atol=1e-6)
     sig = got["significance"]
     assert sig["baseline"] == "comps" and list(sig["against"]) == ["ppo_tl"]
     per_seed = {name: its.mean(1) for name, its in ITERATIONS.items()}
@@ -109,7 +117,7 @@ def test_results_json_of_a_hand_made_run(run_dir):
     # Every plot but the meta step's health (no method here reports one).
     assert got["plots"] == [f"plots/{p}.png" for p in (
         "iterations_to_success", "samples_to_success", "lifelong_return", "per_task_return", "backward_transfer",
-        "heldout_meta_test", "performance_profile", "continual_metrics")]
+        "heldout_meta_test", "critic", "performance_profile", "continual_metrics")]
     assert all((out / p).is_file() for p in got["plots"])
     table = (out / "significance.md").read_text()
     assert "| comps vs | comps mean | other mean |" in table and "| ppo_tl | 2.00 | 2.50 |" in table
@@ -134,6 +142,25 @@ def test_a_run_made_before_the_inner_gain_was_measured_is_reported(run_dir):
     assert np.asarray(health["rho_end"], dtype=float).shape == (S, N)
     assert health["inner_gain_end"] == [[None] * N] * S
     assert "plots/meta_health.png" in got["plots"] and (out / "plots" / "meta_health.png").is_file()
+
+
+def test_a_run_made_before_the_critic_was_measured_is_reported(run_dir):
+    """Raw results without the RL step's explained variance (issue 44): the critic's fields are null, and no
+    critic plot is drawn; an iteration without an update (NaN) does not count."""
+    out, raws = run_dir
+    for name, arrays in raws.items():
+        _save(out / "raw" / f"{name}.npz", {k: v for k, v in arrays.items() if k != "task.per_iteration.value_ev"})
+    got = report.write(str(out))
+    assert got["methods"]["comps"]["critic"]["value_ev_mean"] == [[None] * N] * S
+    assert "plots/critic.png" not in got["plots"]
+    arrays = dict(raws["ppo_tl"])
+    ev = arrays["task.per_iteration.value_ev"].copy()
+    ev[:, :, 1] = np.nan  # iteration 2 of every task made no update
+    _save(out / "raw" / "ppo_tl.npz", {**arrays, "task.per_iteration.value_ev": ev})
+    got = report.write(str(out))["methods"]["ppo_tl"]["critic"]
+    its = ITERATIONS["ppo_tl"]  # seed 0 ran 3 iterations per task, seed 1 two
+    np.testing.assert_allclose(got["value_ev_last"], np.where(its == 3, ev[:, :, 2], ev[:, :, 0]), atol=1e-6)
+    np.testing.assert_allclose(got["value_ev_first"], ev[:, :, 0], atol=1e-6)
 
 
 def test_the_baseline_is_any_method_of_the_run(run_dir):

@@ -63,7 +63,7 @@ def _fakes(s: Script):
         learner = learner._replace(updates=learner.updates + 1, updated_at=learner.updated_at.at[it].set(True),
                                    update_keys=learner.update_keys.at[it].set(key))
         x = (it + 1).astype(jnp.float32)
-        return learner, rl_loop.UpdateTerms(x, 2 * x, 3 * x, 4 * x), s.bad[it]
+        return learner, rl_loop.UpdateTerms(x, 2 * x, 3 * x, 4 * x, 5 * x), s.bad[it]
 
     return collect, update
 
@@ -106,6 +106,8 @@ def test_it_stops_at_the_first_success_without_updating_there():
     np.testing.assert_allclose(out.metrics.mean_return, [0, -1, -2, 0, 0, 0])
     np.testing.assert_allclose(out.metrics.policy_loss, [1, 2, 0, 0, 0, 0])
     np.testing.assert_allclose(out.metrics.approx_kl, [4, 8, 0, 0, 0, 0])
+    # The critic's fit is not measured where no update was made (nor in rows that never ran: zeros).
+    np.testing.assert_allclose(out.metrics.value_ev, [5, 10, np.nan, 0, 0, 0])
     np.testing.assert_array_equal(out.metrics.nonfinite, np.zeros(BUDGET))
 
 
@@ -203,12 +205,12 @@ def test_progress_reports_every_iteration_one_based():
 
 
 def test_mean_terms_are_numpy_means_over_the_steps():
-    per_step = rl_loop.UpdateTerms(*np.random.default_rng(0).normal(size=(4, 7)).astype(np.float32))
+    per_step = rl_loop.UpdateTerms(*np.random.default_rng(0).normal(size=(5, 7)).astype(np.float32))
     means = rl_loop.mean_terms(per_step)
     for got, steps in zip(means, per_step):
         chex.assert_shape(got, ())
         np.testing.assert_allclose(got, np.mean(steps), rtol=1e-6, atol=1e-7)
-    chex.assert_trees_all_equal(rl_loop.zero_terms(), rl_loop.UpdateTerms(*(jnp.float32(0),) * 4))
+    chex.assert_trees_all_equal(rl_loop.zero_terms(), rl_loop.UpdateTerms(*(jnp.float32(0),) * 4, jnp.float32(np.nan)))
 
 
 @pytest.mark.parametrize("curve, cap, expected", [

@@ -113,3 +113,18 @@ def test_resume_refuses_a_run_made_before_the_learnt_tasks_evaluations(runner, f
     err = capsys.readouterr().err
     assert info.value.code == 2 and "eval.learnt_eval" in err and "start it anew" in err
     assert not (old / "checkpoints" / "comps-unreadable").exists()  # refused before any checkpoint was read
+
+
+def test_resume_refuses_a_run_made_before_the_checkpoints_format(runner, full_run, tmp_path, capsys):
+    old = tmp_path / "old_format"
+    shutil.copytree(full_run, old)
+    run_json = old / "run.json"
+    stored = json.loads(run_json.read_text())
+    assert stored["format"] == rundir.FORMAT
+    del stored["format"]  # as made before issue 44: its checkpoints lack the critic's explained variance
+    run_json.write_text(json.dumps(stored))
+    with pytest.raises(SystemExit) as info:
+        runner.main(["--out", str(old), "--resume"])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and "explained variance" in err and "start it anew" in err
+    assert not (old / "checkpoints" / "comps-unreadable").exists()  # refused before any checkpoint was read

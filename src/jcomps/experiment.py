@@ -133,7 +133,7 @@ ProgressReceiver = Callable[[dict], None]
   (``member``, ``heldout_task``, ``heldout_iteration``, ``success_rate``, ``mean_return``);
 - ``WARNING``: something was set aside (``message``), e.g. an unreadable checkpoint;
 - ``ITERATION`` / ``META_STEP``: a member's progress inside a chunk (``program``, ``member``, ``task`` and the
-  ``jcomps.progress`` metrics: ``iteration``, ``success_rate``, ``mean_return`` / ``meta_step``,
+  ``jcomps.progress`` metrics: ``iteration``, ``success_rate``, ``mean_return``, ``value_ev`` / ``meta_step``,
   ``meta_steps``, ``bc_loss``, ``value_l2``, ``value_ev``, ``adv_abs``, ``rho``, ``inner_gain``);
 - ``COMPRESS_ITERATION``: the same for a compress phase of ``pnc`` (``compress_iteration``,
   ``compress_iterations``, ``kl``);

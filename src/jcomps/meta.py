@@ -24,8 +24,8 @@ import jax.numpy as jnp
 import optax
 
 from jcomps import buffers, networks, progress, vtrace
-from jcomps.numerics import (all_finite, check_field, check_finite_fields, guarded_update, keep_if_finite, masked_mean,
-                             masked_standardize, masked_var, optimizer_step)
+from jcomps.numerics import (all_finite, check_field, check_finite_fields, guarded_update, keep_if_finite,
+                             masked_explained_variance, masked_mean, masked_standardize, masked_var, optimizer_step)
 from jcomps.progress import ProgressFn
 
 
@@ -301,10 +301,6 @@ def fit_head(config: MetaConfig, policy, value, slot, off: buffers.OffPolicyStor
     return set_head(value, slot, head)
 
 
-def _explained_variance(target, prediction, mask):
-    return 1.0 - masked_var(target - prediction, mask) / jnp.maximum(masked_var(target, mask), 1e-8)
-
-
 def _stats(config: MetaConfig, bc, value_l2, values, bootstrap, targets, advantages, weights, bc_theta,
            off: buffers.OffPolicyStore):
     """SlotStats of one slot's batch (``bc`` and ``value_l2`` as given, the rest constants; ``bc_theta`` the outer
@@ -317,8 +313,8 @@ def _stats(config: MetaConfig, bc, value_l2, values, bootstrap, targets, advanta
     return SlotStats(
         bc_loss=bc,
         value_l2=value_l2,
-        value_ev=_explained_variance(returns, values, mask),
-        value_ev_targets=_explained_variance(targets, values, mask),
+        value_ev=masked_explained_variance(returns, values, mask),
+        value_ev_targets=masked_explained_variance(targets, values, mask),
         value_bias=masked_mean(values - returns, mask),
         return_std=jnp.sqrt(masked_var(returns, mask)),
         adv_abs=masked_mean(jnp.abs(advantages), mask),

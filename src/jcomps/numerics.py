@@ -56,6 +56,13 @@ def masked_standardize(x, mask, eps: float = 1e-8):
     return (x - mean) / (jnp.sqrt(masked_var(x, mask, mean)) + eps)
 
 
+def masked_explained_variance(target, prediction, mask):
+    """1 − Var(target − prediction) / Var(target) over the valid samples (the critic diagnostic Stable-Baselines and
+    CleanRL log for PPO): 1 for a perfect fit, 0 for a constant at the targets' mean, negative for worse than that.
+    Var(target) is floored at 1e-8, so constant targets give a large negative value unless the fit is exact."""
+    return 1.0 - masked_var(target - prediction, mask) / jnp.maximum(masked_var(target, mask), 1e-8)
+
+
 def all_finite(tree) -> jax.Array:
     """bool[]: whether every leaf of ``tree`` is free of NaN and infinity."""
     return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree)]))

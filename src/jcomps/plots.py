@@ -139,6 +139,27 @@ def _meta_health(save: Callable, with_meta: dict, tasks) -> None:
     save(fig, "meta_health.png")
 
 
+def _critic(save: Callable, methods_: dict, tasks) -> None:
+    """The RL step's critic per task ({name: its ``critic`` summary}): its explained variance of the value targets
+    (mean over the task's updating iterations, and at the last of them) and its value loss."""
+    fig, (ax_ev, ax_loss) = _figure((11, 4), 2)
+    for k_, (name, c) in enumerate(methods_.items()):
+        ev, last = _floats(c["value_ev_mean"]), _floats(c["value_ev_last"])
+        mean, se = mean_se(ev)
+        ax_ev.plot(tasks, mean, marker="o", ms=3, color=f"C{k_}", label=f"{name}, mean over the RL step")
+        ax_ev.fill_between(tasks, mean - se, mean + se, color=f"C{k_}", alpha=0.2)
+        ax_ev.plot(tasks, mean_se(last)[0], ls=":", marker="x", ms=3, color=f"C{k_}", label=f"{name}, last update")
+        _band(ax_loss, tasks, _floats(c["value_loss_mean"]), name)
+    ax_ev.axhline(0.0, color="gray", lw=0.8, ls="--")
+    ax_ev.set(xlabel="task", ylabel="explained variance of the value targets",
+              title="RL step: the critic's fit (before each update)")
+    ax_loss.set(xlabel="task", ylabel="value loss", yscale="log", title="RL step: the critic's value loss")
+    for a in (ax_ev, ax_loss):
+        _integer_ticks(a)
+        _legend_or(a, fontsize=7)
+    save(fig, "critic.png")
+
+
 def _performance_profile(save: Callable, methods_: dict, title: str) -> None:
     """Each method's fraction of runs solved within τ iterations, with its bootstrap band."""
     fig, ax = _figure((6, 4))
@@ -216,6 +237,10 @@ def write(results: dict, raws: dict, directory: str) -> list[str]:
                 f"Backward transfer on the previous {results['description']['eval']['backward_tasks']} tasks",
                 hline=1.0, missing="no earlier tasks to measure")
     _heldout(save, methods_)
+    with_critic = {name: m["critic"] for name, m in methods_.items()
+                   if np.isfinite(_floats(m.get("critic", {}).get("value_ev_mean", [[np.nan]]))).any()}
+    if with_critic:  # not in runs made before issue 44, nor for PEARL
+        _critic(save, with_critic, tasks)
     with_meta = {name: m["meta"] for name, m in methods_.items() if "meta" in m}
     if with_meta:
         _meta_health(save, with_meta, tasks)

@@ -23,7 +23,8 @@ import optax
 
 from jcomps import acting, networks, rl_loop
 from jcomps.envs.base import Family
-from jcomps.numerics import check_field, check_finite_fields, guarded_update, masked_mean, masked_standardize
+from jcomps.numerics import (check_field, check_finite_fields, guarded_update, masked_explained_variance, masked_mean,
+                             masked_standardize)
 from jcomps.progress import ProgressFn
 from jcomps.rl_loop import IterationMetrics, UpdateTerms
 
@@ -186,11 +187,13 @@ def ppo_loss(params: networks.ActorCriticParams, batch: dict, config: PPOConfig,
     else:
         clipped = jnp.clip(ratio, 1 - config.clip_epsilon, 1 + config.clip_epsilon)
         policy_loss = -masked_mean(jnp.minimum(ratio * adv, clipped * adv), mask)
-    value_loss = 0.5 * masked_mean(jnp.square(networks.value_of(params, batch["obs"]) - batch["target"]), mask)
+    value = networks.value_of(params, batch["obs"])
+    value_loss = 0.5 * masked_mean(jnp.square(value - batch["target"]), mask)
     entropy = networks.gaussian_entropy(log_std)
     approx_kl = masked_mean(ratio - 1.0 - log_ratio, mask)
     loss = policy_loss + config.value_coef * value_loss - config.entropy_coef * entropy
-    return loss, UpdateTerms(policy_loss, value_loss, entropy, approx_kl)
+    value_ev = masked_explained_variance(batch["target"], jax.lax.stop_gradient(value), mask)
+    return loss, UpdateTerms(policy_loss, value_loss, entropy, approx_kl, value_ev)
 
 
 
@@ -198,14 +201,14 @@ def ppo_loss(params: networks.ActorCriticParams, batch: dict, config: PPOConfig,
 def flat_batch(config: PPOConfig, params: networks.ActorCriticParams, traj: acting.Trajectory) -> dict:
     """One batch's samples flattened to [T·B, ...] (``obs``, ``action``, ``log_prob``, ``valid``) with their GAE
     ``advantage`` and value ``target`` under ``params``' value network (reward-scaled; the bootstrap at T_max is
-    the truncation's)."""
+    the truncation's) and that network's ``value``."""
     values = networks.value_of(params, traj.obs)
     bootstrap = networks.value_of(params, traj.last_obs)
     advantage, target = gae(traj.reward * config.reward_scale, values, bootstrap, traj.done, config.discount,
                             config.gae_lambda)
     flat = {
         "obs": traj.obs, "action": traj.action, "log_prob": traj.log_prob, "valid": traj.valid,
-        "advantage": advantage, "target": target,
+        "advantage": advantage, "target": target, "value": values,
     }
     return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), flat)
 
@@ -251,12 +254,20 @@ def ppo_update(config: PPOConfig, optimizer, params, opt_state, traj: acting.Tra
     """``num_updates`` minibatch Adam steps on one iteration's batch (``flat_batch``, ``minibatch_steps``) of the
     loss of the policy ``policy_fns`` applies (``ppo_loss``).
 
-    A step whose loss or gradient is not finite is skipped. Returns (params, opt_state, the mean UpdateTerms,
-    nonfinite bool[]).
+    A step whose loss or gradient is not finite is skipped. Returns (params, opt_state, the mean UpdateTerms with
+    ``value_ev`` the critic's fit to the whole batch's targets before the update (``batch_value_ev``), nonfinite
+    bool[]).
     """
     flat = flat_batch(config, params, traj)
     loss_fn = lambda p, idx: ppo_loss(p, jax.tree.map(lambda x: x[idx], flat), config, policy_fns)  # noqa: E731
-    return minibatch_steps(config, optimizer, loss_fn, params, opt_state, flat["valid"].shape[0], rng)
+    params, opt_state, terms, bad = minibatch_steps(config, optimizer, loss_fn, params, opt_state,
+                                                    flat["valid"].shape[0], rng)
+    return params, opt_state, terms._replace(value_ev=batch_value_ev(flat)), bad
+
+
+def batch_value_ev(flat: dict) -> jax.Array:
+    """f32[]: the explained variance of a ``flat_batch``'s value targets by the values it was built with."""
+    return masked_explained_variance(flat["target"], flat["value"], flat["valid"])
 
 
 ObserveFn = Callable[[Any, acting.Trajectory, jax.Array], Any]

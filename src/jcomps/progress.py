@@ -6,7 +6,8 @@ host function through ``jax.debug.callback``). Every dict says what it reports i
 one entry that is not an array; ``host`` passes it through unchanged), and carries:
 
 - ``ITERATION``, after every RL iteration (``rl_loop.iterate``: PPO, MAML+TL, PEARL): ``iteration``,
-  ``success_rate``, ``mean_return``;
+  ``success_rate``, ``mean_return``, ``value_ev`` (the critic's explained variance of its value targets, measured
+  by the iteration's update; NaN without one);
 - ``META_STEP``, after every outer update of a meta-training phase (``meta.meta_train``): ``meta_step``,
   ``meta_steps``, ``bc_loss``, and the meta step's health as means over the seen tasks: ``value_l2``, ``value_ev``
   (the value heads' explained variance of the returns), ``adv_abs`` (mean |Â| of the inner step), ``rho`` (mean

@@ -146,6 +146,7 @@ def summarize(description: dict, raws: dict, baseline: Optional[str] = None) -> 
             "seconds": float(raw.seconds),
             "devices": int(raw.devices),
         }
+        entry["critic"] = critic_summary(raw.task.per_iteration)
         if raw.task.meta is not None:
             entry["meta"] = meta_summary(raw.task.meta)
         entry.update(learnt_summary(raw))
@@ -285,6 +286,19 @@ def probability_of_improvement(raw: results_.RawResults, baseline_raw: results_.
             "statistic": f"P(iterations-to-success < {baseline}'s; ties count 1/2) per task over pairs of seeds "
                          "(Mann-Whitney), averaged over tasks; 95% stratified-bootstrap interval",
             **statistics.probability_of_fewer_iterations(raw.task.iterations, baseline_raw.task.iterations)}
+
+
+def critic_summary(per_iteration) -> dict:
+    """The RL step's critic for ``results.json``: per seed and task, its explained variance of the value targets
+    (mean over the iterations that updated, the first and the last of them) and its value loss (mean over the same
+    iterations); null where not measured (runs made before issue 44, PEARL's Q-critics)."""
+    fit = statistics.critic_fit(per_iteration.value_ev, per_iteration.value_loss, per_iteration.valid)
+    rows = lambda x: [[_json_float(round(float(v), 6)) for v in row] for row in x]  # noqa: E731
+    return {"statistic": "per seed and task, over the RL step's iterations that updated: the critic's explained "
+                         "variance of its value targets (the GAE lambda-returns) on the iteration's batch before "
+                         "the update, and the value loss",
+            "value_ev_mean": rows(fit.ev_mean), "value_ev_first": rows(fit.ev_first),
+            "value_ev_last": rows(fit.ev_last), "value_loss_mean": rows(fit.value_loss)}
 
 
 def meta_summary(meta) -> dict:

@@ -85,7 +85,7 @@ _LEGACY = {"heldout_return": "heldout.mean_return", "heldout_success": "heldout.
 
 def _upgrade(arrays: dict) -> dict:
     if "task.per_iteration.valid" in arrays:
-        return _add_inner_gain(arrays)
+        return _add_value_ev(_add_inner_gain(arrays))
     out = {}
     for key, value in arrays.items():
         if key.startswith("iter."):
@@ -94,7 +94,15 @@ def _upgrade(arrays: dict) -> dict:
     shape = out["heldout.mean_return"].shape[:3]  # [S, P, H]: iterations-to-success was not measured then
     out.setdefault("heldout.iterations", np.zeros(shape, np.int32))
     out.setdefault("heldout.solved", np.zeros(shape, bool))
-    return out
+    return _add_value_ev(out)
+
+
+def _add_value_ev(arrays: dict) -> dict:
+    """The RL step's metrics of a run made before the critic's explained variance was reported (issue 44): NaN."""
+    if "task.per_iteration.value_ev" in arrays or "task.per_iteration.valid" not in arrays:
+        return arrays
+    shape = np.shape(arrays["task.per_iteration.valid"])
+    return {**arrays, "task.per_iteration.value_ev": np.full(shape, np.nan, np.float32)}
 
 
 def _add_inner_gain(arrays: dict) -> dict:

@@ -7,7 +7,8 @@ owns what they share:
 
 - the iteration's keys: ``split(rng, 2 + collect_keys)`` gives the next carry key, ``collect_keys`` keys for the
   collection and one for the update;
-- the success rate and mean return of the iteration's episodes, the progress event (``progress.ITERATION``);
+- the success rate and mean return of the iteration's episodes, the progress event (``progress.ITERATION``, after
+  the update, with the critic's fit the update measured);
 - the decision to update: never once the threshold is reached (iterations-to-success counts the first iteration at
   or above it; no update follows it), never on a batch holding a NaN or an infinity (flagged ``nonfinite``);
 - the per-iteration metrics, fixed-size arrays of length ``budget`` with a validity mask, so the whole loop is one
@@ -34,6 +35,8 @@ class IterationMetrics(NamedTuple):
       success_rate: the family's success rate of the iteration.
       policy_loss, value_loss, entropy, approx_kl: ``UpdateTerms``, means over the iteration's gradient steps (0
         when the iteration reached the threshold and made no update).
+      value_ev: ``UpdateTerms.value_ev``, the critic's explained variance of its value targets on the iteration's
+        batch before the update (NaN where no update was made, and for methods without such a critic).
       nonfinite: 1 where the iteration produced a NaN or infinity (rollout, loss or gradient); such updates
         are skipped, never applied.
       valid: True for iterations that ran (the first ``iterations`` entries).
@@ -45,23 +48,31 @@ class IterationMetrics(NamedTuple):
     value_loss: jax.Array
     entropy: jax.Array
     approx_kl: jax.Array
+    value_ev: jax.Array
     nonfinite: jax.Array
     valid: jax.Array
 
 
 class UpdateTerms(NamedTuple):
     """What an update reports, f32[] each: a loss's named terms (PPO's; PEARL reports its actor loss as
-    ``policy_loss``, its critic loss as ``value_loss`` and the encoder's KL as ``approx_kl``)."""
+    ``policy_loss``, its critic loss as ``value_loss`` and the encoder's KL as ``approx_kl``), and ``value_ev``,
+    how well the critic fits its value targets: 1 − Var(target − V)/Var(target) (``numerics.masked_explained_
+    variance``). PPO (``ppo.ppo_update``) and MAML+TL report it on the iteration's whole batch before the update,
+    against the GAE λ-returns the update regresses on (Stable-Baselines' and CleanRL's diagnostic); ``ppo.ppo_loss``
+    on its minibatch under the parameters it is given; PEARL, whose critics are Q-functions of TD targets, reports
+    NaN (not measured)."""
 
     policy_loss: jax.Array
     value_loss: jax.Array
     entropy: jax.Array
     approx_kl: jax.Array
+    value_ev: jax.Array
 
 
 def zero_terms() -> UpdateTerms:
-    """The terms of an iteration that made no update."""
-    return UpdateTerms(*(jnp.float32(0.0),) * len(UpdateTerms._fields))
+    """The terms of an iteration that made no update: zero losses, the critic's fit not measured (NaN)."""
+    zero = jnp.float32(0.0)
+    return UpdateTerms(zero, zero, zero, zero, jnp.float32(jnp.nan))
 
 
 def mean_terms(per_step: UpdateTerms) -> UpdateTerms:
@@ -132,7 +143,7 @@ class LoopResult(NamedTuple):
 def empty_metrics(budget: int) -> IterationMetrics:
     """IterationMetrics of ``budget`` iterations, none of them run yet (zeros, ``valid`` False)."""
     zeros = jnp.zeros((budget,), jnp.float32)
-    return IterationMetrics(zeros, zeros, zeros, zeros, zeros, zeros, zeros, jnp.zeros((budget,), bool))
+    return IterationMetrics(zeros, zeros, zeros, zeros, zeros, zeros, zeros, zeros, jnp.zeros((budget,), bool))
 
 
 def first_success(success_rate: jax.Array, threshold: float, cap: int) -> tuple[jax.Array, jax.Array]:
@@ -159,7 +170,8 @@ def iterate(collect: CollectFn, update: UpdateFn, state, rng: jax.Array, *, thre
     iterations ran.
 
     ``progress_fn`` (``jcomps.progress``), if given, gets ``{"phase": ITERATION, "iteration", "success_rate",
-    "mean_return"}`` after every collection. ``stop_at_threshold=False`` runs the whole budget, updating after every
+    "mean_return", "value_ev"}`` after every iteration (``value_ev``: ``UpdateTerms.value_ev``, NaN without an
+    update). ``stop_at_threshold=False`` runs the whole budget, updating after every
     iteration (fixed-budget adaptation), or with ``run_at_least`` stops once the threshold has been reached and at
     least that many iterations ran (the metrics of the iterations run are the same either way; later ones are left
     unrun: ``valid`` False, zeros). Jittable; ``collect``, ``update`` and the keyword arguments are static.
@@ -180,9 +192,6 @@ def iterate(collect: CollectFn, update: UpdateFn, state, rng: jax.Array, *, thre
         with acting.only_if(active):
             state, aux, col = collect(c.state, c.aux, tuple(keys[1:-1]), c.it)
         solved = c.solved | (col.success_rate >= threshold)  # reached at this or an earlier iteration
-        if progress_fn is not None:
-            progress_fn({"phase": progress.ITERATION, "iteration": c.it + 1, "success_rate": col.success_rate,
-                         "mean_return": col.mean_return, "active": active})
 
         def learn(state):
             return update(state, col.batch, keys[-1])
@@ -192,6 +201,9 @@ def iterate(collect: CollectFn, update: UpdateFn, state, rng: jax.Array, *, thre
 
         no_update = (solved & stop_at_threshold) | ~col.finite
         state, terms, bad = jax.lax.cond(no_update, skip, learn, state)
+        if progress_fn is not None:
+            progress_fn({"phase": progress.ITERATION, "iteration": c.it + 1, "success_rate": col.success_rate,
+                         "mean_return": col.mean_return, "value_ev": terms.value_ev, "active": active})
         bad = jnp.maximum(bad.astype(jnp.float32), 1.0 - col.finite.astype(jnp.float32))
         row = IterationMetrics(col.mean_return, col.success_rate, *terms, bad, jnp.array(True))
         metrics = jax.tree.map(lambda m, v: m.at[c.it].set(v), c.metrics, row)

@@ -5,7 +5,8 @@ for when it resumes, and the plain JSON files of a run directory (written whole 
 the hyperparameter grid and the per-method ``--set`` overrides if any, and the device count. A resume must match
 it, apart from method config fields that jcomps added after the run was made at their defaults (every added field
 keeps the old behaviour by default), which are filled in; fields whose addition changed what checkpoints hold
-(``UNRESUMABLE_BEFORE``, ``UNRESUMABLE_EVAL_BEFORE``) make an older run unresumable.
+(``UNRESUMABLE_BEFORE``, ``UNRESUMABLE_EVAL_BEFORE``) make an older run unresumable, as does a ``format`` older than
+``FORMAT`` (what the metrics in its checkpoints hold).
 """
 
 from __future__ import annotations
@@ -41,6 +42,15 @@ def _jsonable(x):
     return x
 
 
+FORMAT = 2
+"""The format of what a run's checkpoints hold beyond its configs, recorded as ``run.json``'s ``format`` (runs
+made before it was recorded are format 1); a resume refuses an older one (``FORMAT_CHANGES`` says why)."""
+FORMAT_CHANGES = {
+    2: "the RL step's per-iteration metrics now hold the critic's explained variance (issue 44), which its "
+       "checkpoints lack",
+}
+
+
 def describe(run: RunConfig, eval_config: continual.EvalConfig, method_configs: dict, grid=(),
              overrides: Optional[dict] = None) -> dict:
     """The JSON description of a run (``run.json``), with the device count over every process (float rounding
@@ -51,7 +61,7 @@ def describe(run: RunConfig, eval_config: continual.EvalConfig, method_configs: 
     without either there is no such key."""
     out = {"run": _jsonable(run), "eval": _jsonable(eval_config),
            "methods": {name: _jsonable(method_configs[name]) for name in run.methods},
-           "devices": jax.device_count(), "processes": jax.process_count()}
+           "devices": jax.device_count(), "processes": jax.process_count(), "format": FORMAT}
     if grid:
         out["grid"] = grids.to_json(grid)
     if overrides:
@@ -120,6 +130,12 @@ def _check_resumable(out: str, run_json: str, description: dict) -> None:
         raise RunError(f"--resume: {out} holds no run (no run.json); start it without --resume")
     with open(run_json) as f:
         stored = json.load(f)
+    made = stored.get("format", 1) if isinstance(stored, dict) else FORMAT
+    if isinstance(made, int) and made < FORMAT:
+        why = "; ".join(FORMAT_CHANGES[f] for f in range(made + 1, FORMAT + 1))
+        raise RunError(f"--resume: {out} was made by an earlier version of jcomps and cannot be resumed by this one "
+                       f"({why}); start it anew with another --out (its finished tasks stay reportable: "
+                       f"python experiments/report.py {out} --partial)")
     filled = []
     for name, config in description.get("methods", {}).items():
         if isinstance(stored.get("methods", {}).get(name), dict):

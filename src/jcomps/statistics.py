@@ -225,3 +225,33 @@ def forward_transfer(success_rate: np.ndarray, valid: np.ndarray, reference_succ
     ref_a = cm.reference_by_task(cm.auc(reference_success_rate, reference_valid, horizon),
                                  ids[:, :reference_valid.shape[1]], ids[:, :n])
     return a, ref_a, cm.forward_transfer(a, ref_a)
+
+
+class CriticFit(NamedTuple):
+    """How well an RL step's critic fitted its value targets, per seed and task [S, N] (NaN where not measured:
+    no iteration updated, or the method reports no explained variance).
+
+    Attributes:
+      ev_mean: the explained variance of the targets, mean over the task's iterations that updated.
+      ev_first, ev_last: at the task's first and last iteration that updated.
+      value_loss: the value loss, mean over the same iterations.
+    """
+
+    ev_mean: np.ndarray
+    ev_first: np.ndarray
+    ev_last: np.ndarray
+    value_loss: np.ndarray
+
+
+def critic_fit(value_ev, value_loss, valid) -> CriticFit:
+    """``CriticFit`` from per-iteration ``value_ev``, ``value_loss`` and ``valid`` [S, N, budget]: an iteration
+    counts where it ran and measured the fit (a finite ``value_ev``; the iteration that reached the threshold made
+    no update and measured none)."""
+    ev = np.asarray(value_ev, np.float64)
+    measured = np.asarray(valid, bool) & np.isfinite(ev)
+    any_ = measured.any(-1)
+    first = np.argmax(measured, axis=-1)
+    last = ev.shape[-1] - 1 - np.argmax(measured[..., ::-1], axis=-1)
+    pick = lambda i: np.where(any_, np.take_along_axis(ev, i[..., None], -1)[..., 0], np.nan)  # noqa: E731
+    loss = np.where(measured, np.asarray(value_loss, np.float64), np.nan)
+    return CriticFit(cm.nanmean(np.where(measured, ev, np.nan), -1), pick(first), pick(last), cm.nanmean(loss, -1))

@@ -152,6 +152,7 @@ def make(family: Family, config: MAMLTLConfig = MAMLTLConfig(), progress_fn: Opt
                                             take(post, idx))
         params, opt_state, terms, bad = ppo.minibatch_steps(pcfg, optimizer, loss_fn, params, opt_state,
                                                             post["valid"].shape[0], key)
+        terms = terms._replace(value_ev=ppo.batch_value_ev(post))  # the post-update batch, before the update
         obs = jnp.concatenate([pre_traj.obs, post_traj.obs], axis=1)
         valid = jnp.concatenate([pre_traj.valid, post_traj.valid], axis=1)
         return (ppo.update_obs_norm(pcfg, params, obs, valid), opt_state), terms, bad

@@ -37,7 +37,8 @@ Evaluations: ``policy_for(state, slot)`` acts with z from the posterior of slot'
 with z from the prior, iteration n with z from the posterior of a context sampled from iteration n − 1's batch.
 
 IterationMetrics fields: ``policy_loss`` is the actor loss, ``value_loss`` the critic loss, ``entropy`` the mean
-−log π of the actor's samples, ``approx_kl`` the mean KL(q(z|c) ‖ N(0, I)) (all means over the iteration's steps).
+−log π of the actor's samples, ``approx_kl`` the mean KL(q(z|c) ‖ N(0, I)) (all means over the iteration's steps);
+``value_ev`` is NaN (the Q-critics' fit is their loss).
 """
 
 from __future__ import annotations
@@ -478,7 +479,7 @@ def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optio
         new = state._replace(params=state.params._replace(policy={**state.params.policy, "net": new_policy_net}),
                              q=q, target_q=target_q, encoder=encoder, policy_opt=policy_opt, critic_opt=critic_opt,
                              alpha_opt=alpha_opt, log_alpha=log_alpha)
-        terms = rl_loop.UpdateTerms(actor_loss, q_loss, -masked_mean(log_prob, flat_mask), kl)
+        terms = rl_loop.UpdateTerms(actor_loss, q_loss, -masked_mean(log_prob, flat_mask), kl, jnp.float32(0.0))
         finite = all_finite((terms, g_alpha, g_critic, g_pi))
         return keep_if_finite(finite, new, state), terms, ~finite
 
@@ -489,7 +490,7 @@ def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optio
             return (s, bad | nonfinite), terms
 
         (state, bad), terms = jax.lax.scan(step, (state, jnp.array(False)), jax.random.split(key, num_updates))
-        return state, rl_loop.mean_terms(terms), bad
+        return state, rl_loop.mean_terms(terms)._replace(value_ev=jnp.float32(jnp.nan)), bad  # (Q-critics)
 
     def learn_task(state: PEARLState, task) -> tuple[PEARLState, TaskMetrics]:
         slot = state.task_index
