@@ -7,8 +7,8 @@ measured on each iteration's batch before its update: the mean over the task's u
 loss, and the state of the critic's tanh layers on fresh episodes of the task with the final policy: the median
 |pre-activation| and the share of units saturated (|pre-activation| > 3, where tanh' < 0.01) on at least 95% of
 the states, per hidden layer; and the spread of the critic's outputs against the spread of the returns it should
-predict (``v_std / ret_std``: 0 for a critic that predicts one constant). The last line of a case averages its
-tasks.
+predict (``v_std / ret_std``: 0 for a critic that predicts one constant), and the policy's entropy at the task's
+end. The last line of a case averages its tasks.
 
     python benchmarks/critic_fit.py --family point_goal --tasks 3 --seeds 4
     python benchmarks/critic_fit.py --family point_goal --tasks 3 --seeds 4 --set reward_scale=0.1 --case scaled
@@ -52,7 +52,7 @@ def critic_state(params: networks.ActorCriticParams, obs: jax.Array, returns: ja
     for layer in params.value[:-1]:
         pre = x @ layer["w"] + layer["b"]
         absval = jnp.abs(pre)
-        med.append(jnp.median(jnp.where(mask[:, None], absval, jnp.nan).ravel()[mask.repeat(pre.shape[1])]))
+        med.append(jnp.nanmedian(jnp.where(mask[:, None], absval, jnp.nan)))
         saturated_share = jnp.sum((absval > 3.0) & mask[:, None], axis=0) / jnp.maximum(jnp.sum(mask), 1)
         sat.append(jnp.mean(saturated_share >= 0.95))
         x = jnp.tanh(pre)
@@ -108,6 +108,8 @@ def run_case(family, args, sets: dict, name: str) -> list[dict]:
                "solved": float(np.mean(metrics.solved)),
                "value_ev_mean": float(np.nanmean(fit.ev_mean)), "value_ev_last": float(np.nanmean(fit.ev_last)),
                "value_loss": float(np.nanmean(fit.value_loss)),
+               "entropy_last": float(np.mean(np.asarray(state.params.policy["log_std"]).sum(-1)
+                                             + 0.5 * np.log(2 * np.pi * np.e) * family.action_size)),
                **{f"median_pre{k + 1}": float(np.mean(med[:, k])) for k in range(med.shape[1])},
                **{f"saturated{k + 1}": float(np.mean(sat[:, k])) for k in range(sat.shape[1])},
                "v_std_over_ret_std": float(np.mean(spread)), "seconds": round(time.time() - t0, 1)}

@@ -122,7 +122,10 @@ def _metaworld(reward: str = "v2") -> Callable[[], Family]:
 # fields (kl_weight = its kl_lambda × its meta_batch); MetaWorld takes oyster's defaults.
 _MUJOCO_PPO = {"reward_scale": 0.1, "num_updates": 256, "learning_rate": 1e-4}
 _MUJOCO_META = {"outer_learning_rate": 0.001}
-register("point_goal", _point_goal, {"ppo": {"normalize_observations": False}, "eval": {"heldout_budget": 50},
+# Point Goal's PPO keeps the paper's plain settings but for a reward scale of 0.1 (issue 44): with returns of −17 to
+# −100 unscaled, its critic saturated on the first task and predicted one constant (docs/families.md).
+register("point_goal", _point_goal, {"ppo": {"normalize_observations": False, "reward_scale": 0.1},
+                                     "eval": {"heldout_budget": 50},
                                      "pearl": {"initial_steps": 200}})  # oyster's point-robot.json
 register("cheetah_vel", _mujoco("cheetah_vel"), {
     "ppo": {**_MUJOCO_PPO, "init_std": 0.15}, "meta": dict(_MUJOCO_META),
