@@ -103,6 +103,14 @@ def test_the_meta_step_works_in_the_rl_steps_reward_units_and_learning_rate():
     assert comps.meta_config(fixed).reward_scale == 1.0 and comps.meta_config(fixed).value_learning_rate == 1e-3
 
 
+def test_point_goals_inner_step_is_the_papers_in_raw_reward_units():
+    """The meta step's advantages are in the RL step's reward units: Point Goal's reward scale (0.1 since issue 44)
+    and its inner learning rate multiply to the paper's α = 0.005 on raw rewards, for every rung."""
+    for name in ("comps", "gmps_ppo", "gmps_ppo_is"):
+        config = methods.default_config(name, "point_goal")
+        assert config.meta.inner_learning_rate * comps.meta_config(config).reward_scale == pytest.approx(0.005)
+
+
 def test_where_the_meta_step_starts():
     """With no meta-training steps the meta policy is where the meta step starts: the policy that learnt the task
     (FTML), the slot's fresh initialisation, or the last meta policy, the latter two with the newest statistics."""

@@ -123,8 +123,11 @@ def _metaworld(reward: str = "v2") -> Callable[[], Family]:
 _MUJOCO_PPO = {"reward_scale": 0.1, "num_updates": 256, "learning_rate": 1e-4}
 _MUJOCO_META = {"outer_learning_rate": 0.001}
 # Point Goal's PPO keeps the paper's plain settings but for a reward scale of 0.1 (issue 44): with returns of −17 to
-# −100 unscaled, its critic saturated on the first task and predicted one constant (docs/families.md).
+# −100 unscaled, its critic saturated on the first task and predicted one constant (docs/families.md). The meta
+# step's advantages are in the RL step's reward units, so its inner learning rate takes the inverse factor: 0.05
+# on rewards × 0.1 is the paper's α = 0.005 on Point Goal's raw rewards, the inner step it had before.
 register("point_goal", _point_goal, {"ppo": {"normalize_observations": False, "reward_scale": 0.1},
+                                     "meta": {"inner_learning_rate": 0.05},
                                      "eval": {"heldout_budget": 50},
                                      "pearl": {"initial_steps": 200}})  # oyster's point-robot.json
 register("cheetah_vel", _mujoco("cheetah_vel"), {
