@@ -27,7 +27,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jcomps import acting, envs, hostdevices, methods, networks, ppo, statistics
+from jcomps import acting, envs, hostdevices, methods, networks, ppo, statistics, vtrace
+from jcomps.numerics import masked_var
 from jcomps.cli import parse_value
 
 
@@ -57,24 +58,8 @@ def critic_state(params: networks.ActorCriticParams, obs: jax.Array, returns: ja
         sat.append(jnp.mean(saturated_share >= 0.95))
         x = jnp.tanh(pre)
     v = (x @ params.value[-1]["w"] + params.value[-1]["b"])[..., 0]
-    w = mask.astype(jnp.float32)
-
-    def std(y):
-        m = jnp.sum(y * w) / jnp.sum(w)
-        return jnp.sqrt(jnp.sum(jnp.square(y - m) * w) / jnp.sum(w))
-
+    std = lambda y: jnp.sqrt(masked_var(y, mask.astype(jnp.float32)))  # noqa: E731
     return jnp.stack(med), jnp.stack(sat), std(v) / jnp.maximum(std(returns.reshape(-1)), 1e-8)
-
-
-def discounted_returns(reward, done, discount):
-    """Discounted reward-to-go [T, B] of each episode step (no bootstrap at T_max: the truncated return)."""
-    def body(acc, xs):
-        r, d = xs
-        acc = r + discount * acc * (1.0 - d)
-        return acc, acc
-
-    _, out = jax.lax.scan(body, jnp.zeros(reward.shape[1:]), (reward, done), reverse=True)
-    return out
 
 
 def run_case(family, args, sets: dict, name: str) -> list[dict]:
@@ -89,7 +74,9 @@ def run_case(family, args, sets: dict, name: str) -> list[dict]:
     def inspect(params, task, rng):
         def one(p, k):
             traj = acting.rollout(family, p.policy, task, k, pcfg.num_trajectories)
-            ret = discounted_returns(traj.reward * pcfg.reward_scale, traj.done, pcfg.discount)
+            # The truncated discounted reward-to-go (no bootstrap at T_max), in the critic's reward units.
+            ret = vtrace.discounted_returns(traj.reward * pcfg.reward_scale, pcfg.discount * (1.0 - traj.done),
+                                            jnp.zeros(traj.reward.shape[1:]))
             return critic_state(p, traj.obs, ret, traj.valid)
         return jax.vmap(one)(params, jax.random.split(rng, args.seeds))
 
@@ -108,8 +95,7 @@ def run_case(family, args, sets: dict, name: str) -> list[dict]:
                "solved": float(np.mean(metrics.solved)),
                "value_ev_mean": float(np.nanmean(fit.ev_mean)), "value_ev_last": float(np.nanmean(fit.ev_last)),
                "value_loss": float(np.nanmean(fit.value_loss)),
-               "entropy_last": float(np.mean(np.asarray(state.params.policy["log_std"]).sum(-1)
-                                             + 0.5 * np.log(2 * np.pi * np.e) * family.action_size)),
+               "entropy_last": float(np.mean(networks.gaussian_entropy(state.params.policy["log_std"]))),
                **{f"median_pre{k + 1}": float(np.mean(med[:, k])) for k in range(med.shape[1])},
                **{f"saturated{k + 1}": float(np.mean(sat[:, k])) for k in range(sat.shape[1])},
                "v_std_over_ret_std": float(np.mean(spread)), "seconds": round(time.time() - t0, 1)}

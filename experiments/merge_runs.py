@@ -39,7 +39,7 @@ def merged_description(descriptions: list) -> dict:
     run_defaults = json.loads(json.dumps(dataclasses.asdict(experiment.RunConfig())))
     for d, desc in descriptions:
         for key in sorted(set(first) | set(desc)):
-            if key in ("methods", "overrides", "processes", "format"):  # results depend on neither count
+            if key in ("methods", "overrides", "processes", "format"):  # neither changes the results
                 continue
             a, b = first.get(key), desc.get(key)
             if key == "run":

@@ -85,46 +85,43 @@ def test_resume_fills_config_fields_added_since_the_run_was_made(runner, full_ru
     assert json.loads(run_json.read_text()) == json.loads((full_run / "run.json").read_text())
 
 
+def _refused_resume(runner, full_run, tmp_path, capsys, name: str, edit) -> tuple:
+    """A copy of ``full_run`` whose run.json ``edit(stored)`` changes in place, resumed: (its directory, the exit
+    code, stderr)."""
+    old = tmp_path / name
+    shutil.copytree(full_run, old)
+    run_json = old / "run.json"
+    stored = json.loads(run_json.read_text())
+    edit(stored)
+    run_json.write_text(json.dumps(stored))
+    with pytest.raises(SystemExit) as info:
+        runner.main(["--out", str(old), "--resume"])
+    return old, info.value.code, capsys.readouterr().err
+
+
 # As made before issue 27 (its state no longer fits) and before issue 43 (its metrics lack the inner step's gain).
 @pytest.mark.parametrize("field", ["value_init", "outer_loss"])
 def test_resume_refuses_a_comps_run_whose_checkpoints_no_longer_fit(runner, full_run, tmp_path, capsys, field):
-    old = tmp_path / f"old_{field}"
-    shutil.copytree(full_run, old)
-    run_json = old / "run.json"
-    stored = json.loads(run_json.read_text())
-    del stored["methods"]["comps"]["meta"][field]
-    run_json.write_text(json.dumps(stored))
-    with pytest.raises(SystemExit) as info:
-        runner.main(["--out", str(old), "--resume"])
-    err = capsys.readouterr().err
-    assert info.value.code == 2 and field in err and "start it anew" in err
+    _, code, err = _refused_resume(runner, full_run, tmp_path, capsys, f"old_{field}",
+                                   lambda stored: stored["methods"]["comps"]["meta"].pop(field))
+    assert code == 2 and field in err and "start it anew" in err
 
 
 def test_resume_refuses_a_run_made_before_the_learnt_tasks_evaluations(runner, full_run, tmp_path, capsys):
-    old = tmp_path / "old_eval"
-    shutil.copytree(full_run, old)
-    run_json = old / "run.json"
-    stored = json.loads(run_json.read_text())
-    for key in ("learnt_eval", "learnt_episodes"):  # as made before issue 28: its checkpoints lack these metrics
-        del stored["eval"][key]
-    run_json.write_text(json.dumps(stored))
-    with pytest.raises(SystemExit) as info:
-        runner.main(["--out", str(old), "--resume"])
-    err = capsys.readouterr().err
-    assert info.value.code == 2 and "eval.learnt_eval" in err and "start it anew" in err
+    def edit(stored):
+        for key in ("learnt_eval", "learnt_episodes"):  # as made before issue 28: its checkpoints lack these metrics
+            del stored["eval"][key]
+
+    old, code, err = _refused_resume(runner, full_run, tmp_path, capsys, "old_eval", edit)
+    assert code == 2 and "eval.learnt_eval" in err and "start it anew" in err
     assert not (old / "checkpoints" / "comps-unreadable").exists()  # refused before any checkpoint was read
 
 
 def test_resume_refuses_a_run_made_before_the_checkpoints_format(runner, full_run, tmp_path, capsys):
-    old = tmp_path / "old_format"
-    shutil.copytree(full_run, old)
-    run_json = old / "run.json"
-    stored = json.loads(run_json.read_text())
-    assert stored["format"] == rundir.FORMAT
-    del stored["format"]  # as made before issue 44: its checkpoints lack the critic's explained variance
-    run_json.write_text(json.dumps(stored))
-    with pytest.raises(SystemExit) as info:
-        runner.main(["--out", str(old), "--resume"])
-    err = capsys.readouterr().err
-    assert info.value.code == 2 and "explained variance" in err and "start it anew" in err
+    def edit(stored):
+        assert stored["format"] == rundir.FORMAT
+        del stored["format"]  # as made before issue 44: its checkpoints lack the critic's explained variance
+
+    old, code, err = _refused_resume(runner, full_run, tmp_path, capsys, "old_format", edit)
+    assert code == 2 and "explained variance" in err and "start it anew" in err
     assert not (old / "checkpoints" / "comps-unreadable").exists()  # refused before any checkpoint was read

@@ -58,9 +58,9 @@ class UpdateTerms(NamedTuple):
     ``policy_loss``, its critic loss as ``value_loss`` and the encoder's KL as ``approx_kl``), and ``value_ev``,
     how well the critic fits its value targets: 1 − Var(target − V)/Var(target) (``numerics.masked_explained_
     variance``). PPO (``ppo.ppo_update``) and MAML+TL report it on the iteration's whole batch before the update,
-    against the GAE λ-returns the update regresses on (Stable-Baselines' and CleanRL's diagnostic); ``ppo.ppo_loss``
-    on its minibatch under the parameters it is given; PEARL, whose critics are Q-functions of TD targets, reports
-    NaN (not measured)."""
+    against the GAE λ-returns the update regresses on (Stable-Baselines' and CleanRL's diagnostic; ``ppo.ppo_loss``,
+    per minibatch, leaves it NaN for them to set); PEARL, whose critics are Q-functions of TD targets, reports NaN
+    (not measured)."""
 
     policy_loss: jax.Array
     value_loss: jax.Array
