@@ -211,7 +211,8 @@ class Console:
     def _evaluating(self, name, event):
         after = event["after_tasks"]
         what = "the initial policies" if after == 0 else f"the policies after task {after}"
-        self.log(f"[{name}] held-out meta-test{' and learnt tasks' if event['learnt'] else ''} of {what}...")
+        test = "held-out meta-test" if event.get("adapts", True) else "held-out zero-shot return"
+        self.log(f"[{name}] {test}{' and learnt tasks' if event['learnt'] else ''} of {what}...")
         if name in self.progress:
             self.progress[name].heldout_begin()
 

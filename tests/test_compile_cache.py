@@ -88,10 +88,16 @@ def test_non_finite_config_values_are_refused(make, field):
 
 
 def test_heldout_budget_by_family():
-    config = continual.EvalConfig()
-    assert config.heldout_budget is None
-    assert config.resolve("point_goal").heldout_budget == 50
+    # Off by default (the zero-shot return only); the curve asked for brings the family's budget with it.
+    off = continual.EvalConfig()
+    assert off.heldout_budget is None and off.heldout_iterations == 0
+    assert off.resolve("point_goal").heldout_budget == 0 and not off.resolve("point_goal").heldout_measured
+    assert off.resolve("point_goal").heldout_run == 1
+    config = continual.EvalConfig(heldout_iterations=5)
+    assert config.resolve("point_goal").heldout_budget == 50 and config.resolve("point_goal").heldout_measured
     assert config.resolve("cheetah_vel").heldout_budget == 0 and config.resolve("metaworld").heldout_budget == 0
+    assert config.resolve("cheetah_vel").heldout_measured
     assert continual.EvalConfig(heldout_budget=7).resolve("cheetah_vel").heldout_budget == 7
+    assert continual.EvalConfig(heldout_budget=7).resolve("cheetah_vel").heldout_measured
     with pytest.raises(ValueError, match="resolve"):
         config.heldout_run

@@ -70,6 +70,7 @@ def test_console_says_what_compiles_and_evaluates(console, tmp_path):
     show({"event": "heldout_iteration", "program": "comps", "member": 1, "heldout_task": 7, "heldout_iteration": 3,
           "success_rate": 0.0, "mean_return": -1.0})
     show({"event": "evaluated", "program": "comps", "after_tasks": 0, "seconds": 42.0})
+    show({"event": "evaluating", "program": "comps", "after_tasks": 2, "learnt": 2, "adapts": False})
     assert lines[1] == "[comps] compiling the learning program (cheetah_vel, comps)..."
     assert lines[2] == "[comps] still compiling the learning program: 0m20s"
     assert lines[3] == "[comps] learning program ready in 1m35s (tracing 12s)"
@@ -78,6 +79,7 @@ def test_console_says_what_compiles_and_evaluates(console, tmp_path):
     assert lines[6] == "[comps] held-out meta-test of the initial policies..."
     assert lines[7].startswith("[comps] held-out meta-test: 8 held-out tasks, iteration 3 (slowest 0) | elapsed")
     assert lines[8] == "[comps] evaluations after 0 task(s) done in 0m42s"
+    assert lines[9] == "[comps] held-out zero-shot return and learnt tasks of the policies after task 2..."
 
 
 def test_console_shows_the_meta_steps_health(console, tmp_path):

@@ -129,7 +129,8 @@ def test_every_traced_field_traces(name):
     only, not compiled)."""
     config = methods.config_class(name)(**({"max_tasks": 2} if name in ("comps", "pearl") else {}))
     traced = tuple(sorted(grid.traced_fields(type(config))))
-    program = programs.Programs().get(name, "point_goal", config, continual.EvalConfig(), 1, 1, traced)
+    program = programs.Programs().get(name, "point_goal", config, continual.EvalConfig(heldout_iterations=2), 1, 1,
+                                  traced)
     abstract = lambda tree: jax.tree.map(  # noqa: E731
         lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=program.sharding), tree)
     values = {f: jnp.full((1,), 0.5, jnp.float32) for f in traced}
@@ -146,7 +147,7 @@ def test_every_traced_field_traces(name):
                                   index, hparams)
     assert held.iterations.shape[0] == 1 and jax.tree.leaves(learnt)[0].shape[:2] == (1, 2)
     # The runner sizes its host copies from continual's shapes without tracing these programs: they must agree.
-    eval_config = continual.EvalConfig().resolve("point_goal")
+    eval_config = continual.EvalConfig(heldout_iterations=2).resolve("point_goal")
     member = lambda tree: jax.tree.map(lambda x: (1,) + x.shape + (x.dtype,), tree)  # noqa: E731
     expected = continual.heldout_shapes(eval_config, len(family.held_out_values), 2)
     assert member(expected) == jax.tree.map(lambda x: x.shape + (x.dtype,), (held, learnt))

@@ -124,6 +124,30 @@ def test_results_json_of_a_hand_made_run(run_dir):
     assert "| method | tasks 1-1 | tasks 2-2 |" in table and "P(fewer iterations than comps)" in table
 
 
+def test_a_run_without_the_held_out_meta_test_reports_its_zero_shot_return_and_draws_no_held_out_plot(run_dir):
+    """The default since issue 44 (``--heldout-iterations 0 --heldout-budget 0``): the held-out curve is the
+    zero-shot return alone; results.json keeps it, and no held-out figure is drawn."""
+    out, raws = run_dir
+    description = json.loads((out / "run.json").read_text())
+    description["eval"].update(heldout_iterations=0, heldout_budget=0)
+    (out / "run.json").write_text(json.dumps(description))
+    for name, arrays in raws.items():
+        arrays = dict(arrays)
+        for k in ("heldout.mean_return", "heldout.success_rate"):
+            arrays[k] = arrays[k][..., :1]
+        arrays["heldout.iterations"] = np.zeros_like(arrays["heldout.iterations"])
+        arrays["heldout.solved"] = np.zeros_like(arrays["heldout.solved"])
+        _save(out / "raw" / f"{name}.npz", arrays)
+    got = report.write(str(out))
+    for name, arrays in raws.items():
+        h = got["methods"][name]["heldout"]
+        assert h["adaptation_iterations"] == 0 and h["budget"] == 0
+        np.testing.assert_allclose(h["zero_shot_return"], arrays["heldout.mean_return"][..., 0].mean(axis=2),
+                                   atol=1e-6)
+    assert "plots/heldout_meta_test.png" not in got["plots"] and "plots/critic.png" in got["plots"]
+    assert not (out / "plots" / "heldout_meta_test.png").exists()
+
+
 def test_a_run_made_before_the_inner_gain_was_measured_is_reported(run_dir):
     """A meta-learning run whose raw results predate the inner step's gain (issue 43): its other health fields
     are reported, the gain as unmeasured (null), and the meta step's health is drawn."""

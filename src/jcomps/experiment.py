@@ -129,7 +129,7 @@ ProgressReceiver = Callable[[dict], None]
 - ``RESUMED``: it continues from a checkpoint (``program``, ``step``, ``tasks_done``, ``num_tasks``);
 - ``EVALUATING`` / ``EVALUATED``: the held-out meta-test and learnt-task evaluation after ``after_tasks`` tasks
   (0: the initial policies, measured after the first chunk) begins (``learnt``: how many learnt tasks it
-  evaluates) / ends (``seconds``); in between, ``HELDOUT_ITERATION`` events give each member's adaptation progress
+  evaluates; ``adapts``: whether the meta-test adapts, or measures the zero-shot return only) / ends (``seconds``); in between, ``HELDOUT_ITERATION`` events give each member's adaptation progress
   (``member``, ``heldout_task``, ``heldout_iteration``, ``success_rate``, ``mean_return``);
 - ``WARNING``: something was set aside (``message``), e.g. an unreadable checkpoint;
 - ``ITERATION`` / ``META_STEP``: a member's progress inside a chunk (``program``, ``member``, ``task`` and the
@@ -367,7 +367,7 @@ class _ProgramRun:
         """The evaluations of ``states`` (``learnt``: the tasks to evaluate) into column ``column`` of ``heldout``
         (``after``: the tasks learnt, for the progress lines); returns them on the host."""
         self.compile_heldout(states)
-        self.emit(EVALUATING, after_tasks=after, learnt=learnt)
+        self.emit(EVALUATING, after_tasks=after, learnt=learnt, adapts=self.eval_config.heldout_measured)
         began = time.time()
         out = to_host(self.program.heldout(states, self.heldout_tasks, self.program.put(keys), self.sequences,
                                            np.int32(learnt), self.backward_keys, self.seed_index, self.hparams))

@@ -85,7 +85,11 @@ def _lifelong_return(save: Callable, raws: dict) -> None:
 
 
 def _heldout(save: Callable, methods_: dict) -> None:
-    """The held-out meta-test after each chunk: iterations to success and the return before and after adapting."""
+    """The held-out meta-test after each chunk: iterations to success and the return before and after adapting.
+    Not drawn when no method adapted on the held-out tasks (the test off: ``--heldout-iterations 0
+    --heldout-budget 0``, the default; results.json still has their zero-shot return)."""
+    if all(m["heldout"]["adaptation_iterations"] == 0 and m["heldout"]["budget"] == 0 for m in methods_.values()):
+        return
     fig, (ax_its, ax) = _figure((11, 4), 2)
     for k_, (name, m) in enumerate(methods_.items()):
         h = m["heldout"]
