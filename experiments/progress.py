@@ -144,16 +144,18 @@ def _clock(seconds: float) -> str:
 class Console:
     """A ``jcomps.experiment.ProgressReceiver``: prints progress lines (at most every ``interval`` seconds per
     program), every task's iterations-to-success, non-finite warnings and checkpoint warnings through ``log``; with
-    ``tensorboard``, also writes TensorBoard logs under ``out/tensorboard/<entry>``. Each kind of event
+    ``tensorboard``, also writes TensorBoard logs under ``out/tensorboard/<entry>``, with ``wandb`` (a project) the
+    same scalars to Weights & Biases (``WandbLogger``; ``close`` finishes its runs). Each kind of event
     (``jcomps.experiment.EVENTS``) has its handler; kinds it does not show are ignored."""
 
     def __init__(self, log: Callable[[str], None] = print, out: Optional[str] = None, tensorboard: bool = False,
-                 interval: float = 10.0):
+                 interval: float = 10.0, wandb: Optional[str] = None, wandb_group: Optional[str] = None):
         self.log, self.out, self.tensorboard, self.interval = log, out, tensorboard, interval
         self.progress: dict = {}
         self.writers: dict = {}
         if tensorboard:
             _tensorboard_writer_class()  # fail before anything runs if tensorboardX is missing
+        self.wandb = WandbLogger(wandb, out, wandb_group) if wandb else None
         self.handlers = {
             experiment.START: self._start, experiment.COMPILING: self._compiling,
             experiment.STILL_COMPILING: self._still_compiling, experiment.COMPILED: self._compiled,
@@ -250,18 +252,24 @@ class Console:
         if learnt is not None and np.any(learnt.valid):
             self.log(f"[{entry}] after task {stop}/{event['num_tasks']}: {learnt_text(event['per_task'], learnt)}")
         _check_finite(self.log, entry, event["seeds"], event["metrics"].task.per_iteration.nonfinite, start)
-        if self.tensorboard:
-            self._log_chunk_tensorboard(entry, event, learnt)
+        if self.tensorboard or self.wandb:
+            scalars = chunk_scalars(event["per_task"], event["start"], event["stop"], learnt)
+            if self.tensorboard:
+                if entry not in self.writers:
+                    self.writers[entry] = _tensorboard_writer_class()(os.path.join(self.out, "tensorboard", entry))
+                for tag, value, _, step in scalars:
+                    self.writers[entry].add_scalar(tag, value, step)
+                self.writers[entry].flush()
+            if self.wandb:
+                self.wandb.log(entry, scalars)
 
-    def _log_chunk_tensorboard(self, entry, event, learnt):
-        if entry not in self.writers:
-            self.writers[entry] = _tensorboard_writer_class()(os.path.join(self.out, "tensorboard", entry))
-        _log_tensorboard(self.writers[entry], event["per_task"], event["start"], event["stop"])
-        if learnt is not None and np.any(learnt.valid):
-            now, then = _learnt_means(event["per_task"], learnt)
-            self.writers[entry].add_scalar("learnt_tasks/average_performance", now, event["stop"])
-            self.writers[entry].add_scalar("learnt_tasks/forgetting", then - now, event["stop"])
-            self.writers[entry].flush()
+    def close(self):
+        """Closes the TensorBoard writers and finishes the W&B runs."""
+        for writer in self.writers.values():
+            writer.close()
+        self.writers = {}
+        if self.wandb:
+            self.wandb.close()
 
     def _done(self, name, event):
         self.progress.pop(name, None)
@@ -347,23 +355,84 @@ def _check_finite(log, name, seeds, nonfinite, start):
             f"{it + 1}; those updates were skipped, not trained on")
 
 
-def _log_tensorboard(writer, per_task, start, stop):
+def chunk_scalars(per_task, start: int, stop: int, learnt=None) -> list[tuple[str, float, str, int]]:
+    """The scalars of tasks ``start`` … ``stop`` − 1 that TensorBoard and W&B get: (tag, value, axis, step), the
+    axis ``task`` (iterations-to-success, the learnt tasks' metrics after the chunk) or ``iteration/seed<s>`` (the
+    seed's iterations over the whole sequence: lifelong return and success, the critic's explained variance and
+    value loss where the iteration updated)."""
     task = per_task.task
     its = np.asarray(task.iterations)
+    out = []
     for t in range(start, stop):
-        writer.add_scalar("iterations_to_success/mean", float(its[:, t].mean()), t + 1)
+        out.append(("iterations_to_success/mean", float(its[:, t].mean()), "task", t + 1))
         for s in range(its.shape[0]):
-            writer.add_scalar(f"iterations_to_success/seed{s}", float(its[s, t]), t + 1)
+            out.append((f"iterations_to_success/seed{s}", float(its[s, t]), "task", t + 1))
+        for s in range(its.shape[0]):
             valid = np.asarray(task.per_iteration.valid[s, t])
             offset = int(np.sum(np.asarray(task.per_iteration.valid[s, :t])))
+            axis = f"iteration/seed{s}"
             for i in np.flatnonzero(valid):
-                writer.add_scalar(f"lifelong_return/seed{s}", float(task.per_iteration.mean_return[s, t, i]),
-                                  offset + i + 1)
-                writer.add_scalar(f"lifelong_success/seed{s}", float(task.per_iteration.success_rate[s, t, i]),
-                                  offset + i + 1)
+                step = offset + int(i) + 1
+                out.append((f"lifelong_return/seed{s}", float(task.per_iteration.mean_return[s, t, i]), axis, step))
+                out.append((f"lifelong_success/seed{s}", float(task.per_iteration.success_rate[s, t, i]), axis, step))
                 ev = float(task.per_iteration.value_ev[s, t, i])
                 if np.isfinite(ev):  # measured where the iteration updated
-                    writer.add_scalar(f"critic_ev/seed{s}", ev, offset + i + 1)
-                    writer.add_scalar(f"critic_value_loss/seed{s}", float(task.per_iteration.value_loss[s, t, i]),
-                                      offset + i + 1)
-    writer.flush()
+                    out.append((f"critic_ev/seed{s}", ev, axis, step))
+                    out.append((f"critic_value_loss/seed{s}", float(task.per_iteration.value_loss[s, t, i]), axis,
+                                step))
+    if learnt is not None and np.any(learnt.valid):
+        now, then = _learnt_means(per_task, learnt)
+        out.append(("learnt_tasks/average_performance", now, "task", stop))
+        out.append(("learnt_tasks/forgetting", then - now, "task", stop))
+    return out
+
+
+class WandbLogger:
+    """Weights & Biases runs, one per results entry, with the scalars TensorBoard gets (``chunk_scalars``): each on
+    its own axis (``task``, or a seed's ``iteration/seed<s>``) declared with ``define_metric``, so that W&B draws
+    them as TensorBoard does. Offline unless ``WANDB_MODE`` says otherwise (``wandb sync OUT/wandb/offline-run-*``
+    uploads later); the files go to ``OUT/wandb``; no API key or network is needed offline."""
+
+    def __init__(self, project: str, out: str, group: Optional[str] = None):
+        try:
+            import wandb
+        except ImportError as err:
+            raise RunError("--wandb needs wandb: pip install -e '.[wandb]'") from err
+        self.wandb, self.project, self.out, self.group = wandb, project, out, group
+        self.mode = os.environ.get("WANDB_MODE", "offline")
+        # Process-wide: offline and silent before any run (a mode given to init alone still probes the server).
+        wandb.setup(settings=wandb.Settings(mode=self.mode, silent=True))
+        self.runs: dict = {}
+        self.axes: dict = {}
+
+    def _run(self, entry: str):
+        if entry not in self.runs:
+            os.makedirs(self.out, exist_ok=True)
+            run = self.wandb.init(
+                project=self.project, dir=self.out, name=entry, group=self.group or os.path.basename(self.out),
+                job_type="sequence", mode=self.mode, reinit="create_new",
+                settings=self.wandb.Settings(console="off", x_disable_stats=True, disable_git=True,
+                                             x_save_requirements=False))
+            run.define_metric("task")
+            run.define_metric("iterations_to_success/*", step_metric="task")
+            run.define_metric("learnt_tasks/*", step_metric="task")
+            self.runs[entry], self.axes[entry] = run, set()
+        return self.runs[entry]
+
+    def log(self, entry: str, scalars) -> None:
+        """Logs ``scalars`` ((tag, value, axis, step), as ``chunk_scalars`` gives them): one row per axis and step."""
+        run, axes = self._run(entry), self.axes[entry]
+        rows: dict = {}
+        for tag, value, axis, step in scalars:
+            if axis != "task" and tag not in axes:
+                run.define_metric(axis, hidden=True)
+                run.define_metric(tag, step_metric=axis)
+                axes.add(tag)
+            rows.setdefault((axis, step), {axis: step})[tag] = value
+        for row in rows.values():
+            run.log(row)
+
+    def close(self) -> None:
+        for run in self.runs.values():
+            run.finish()
+        self.runs = {}

@@ -97,6 +97,12 @@ def parse_args(argv=None):
                              "up to a multiple of the devices used; the extra ones are not reported. On a GPU "
                              "machine the run uses the GPUs instead")
     parser.add_argument("--tensorboard", action="store_true", help="also write TensorBoard logs (tensorboardX)")
+    parser.add_argument("--wandb", default=None, metavar="PROJECT",
+                        help="also log the TensorBoard scalars to Weights & Biases project PROJECT, one run per "
+                             "method, offline unless WANDB_MODE says otherwise (files in OUT/wandb; `wandb sync` "
+                             "uploads them); needs pip install -e '.[wandb]'")
+    parser.add_argument("--wandb-group", default=None, metavar="NAME",
+                        help="the W&B group of the runs (default: the run directory's name)")
     parser.add_argument("--compile-cache", default=os.environ.get(compile_cache.ENV), metavar="DIR",
                         help="JAX's persistent compilation cache: a second identical run, or a --resume, loads its "
                              "programs instead of compiling them; none: off (default: $JCOMPS_COMPILE_CACHE, else "
@@ -237,11 +243,14 @@ def main(argv=None):
     if cluster.distributed:
         _say_processes(cluster, writer)
     try:
-        console = Console(lambda line: print(line, flush=True), args.out, args.tensorboard) if writer else None
+        console = (Console(lambda line: print(line, flush=True), args.out, args.tensorboard, wandb=args.wandb,
+                           wandb_group=args.wandb_group) if writer else None)
         receiver = distributed.progress_receiver(console)
         experiment.run(args.out, args.run, args.eval, args.configs, resume=args.resume, progress_fn=receiver,
                        grid=args.grid, overrides=args.overrides, programs=PROGRAMS)
         distributed.close_receiver(receiver)
+        if console is not None:
+            console.close()
         if not writer:  # process 0 writes the report and prints the results
             return
         results = report.write(args.out, baseline=args.baseline)

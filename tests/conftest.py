@@ -142,6 +142,7 @@ console = _script_fixture("console", "progress", "The runner's progress lines an
 runner = _script_fixture("runner", "run_sequence", "The runner (its ``parse_args`` and ``main``).")
 merge_runs = _script_fixture("merge_runs", "merge_runs", "Merging runs (its ``merge``).")
 render = _script_fixture("render", "render", "Policy replays (its ``render``).")
+reproduce = _script_fixture("reproduce", "reproduce", "A family's experiments of the paper (its ``main``).")
 
 
 # The runner's tiny end-to-end run, shared by the tests of the host loop and of the run directory

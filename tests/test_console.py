@@ -1,5 +1,5 @@
-"""Tests of the runner's console (``experiments/progress.py``): the runner's events turned into progress lines and
-TensorBoard logs."""
+"""Tests of the runner's console (``experiments/progress.py``): the runner's events turned into progress lines,
+TensorBoard logs and (offline) Weights & Biases runs."""
 
 import numpy as np
 import pytest
@@ -129,10 +129,67 @@ def test_console_shows_the_learnt_tasks_success_and_forgetting(console, tmp_path
     assert not lines[-1].startswith("[comps] after task")
 
 
+def _varied_chunk(seeds=2, tasks=2, budget=3):
+    """Chunk metrics whose iterations, returns and critic differ by seed, task and iteration (the second seed's
+    second task ran 2 iterations, the critic measured on the first iteration of each task only)."""
+    metrics = _chunk_metrics(seeds, tasks, budget)
+    it = metrics.task.per_iteration
+    shape = (seeds, tasks, budget)
+    ret = np.arange(np.prod(shape), dtype=np.float32).reshape(shape)
+    valid = np.ones(shape, bool)
+    valid[1, 1, 2] = False
+    ev = np.full(shape, np.nan, np.float32)
+    ev[:, :, 0] = 0.5
+    iterations = valid.sum(-1).astype(np.int32)
+    task = metrics.task._replace(iterations=iterations,
+                                 per_iteration=it._replace(mean_return=ret, valid=valid, value_ev=ev))
+    return metrics._replace(task=task)
+
+
 def test_console_writes_tensorboard(console, tmp_path):
-    pytest.importorskip("tensorboardX")
+    from tensorboardX.event_file_writer import EventFileWriter  # noqa: F401 (installed with the dev extras)
     show = console.Console(lambda line: None, str(tmp_path), tensorboard=True)
-    metrics = _chunk_metrics(2, 2, 3)
+    metrics = _varied_chunk()
     show({"event": "chunk", "program": "ppo_tl", "entry": "ppo_tl", "start": 0, "stop": 2, "num_tasks": 2,
           "seeds": [0, 1], "metrics": metrics, "per_task": metrics})
+    show.close()
     assert any(p.name.startswith("events.out.tfevents") for p in (tmp_path / "tensorboard" / "ppo_tl").iterdir())
+
+
+def test_the_scalars_are_the_metrics_on_their_axes(console):
+    metrics = _varied_chunk()
+    got = {(tag, axis, step): value for tag, value, axis, step in console.chunk_scalars(metrics, 0, 2)}
+    assert got[("iterations_to_success/mean", "task", 2)] == 2.5 and got[("iterations_to_success/seed1", "task", 2)] == 2
+    # The second seed's lifelong curve runs over its 5 iterations: 3 of task 1, then 2 of task 2.
+    ret = metrics.task.per_iteration.mean_return
+    assert [got[("lifelong_return/seed1", "iteration/seed1", n)] for n in range(1, 6)] == [
+        ret[1, 0, 0], ret[1, 0, 1], ret[1, 0, 2], ret[1, 1, 0], ret[1, 1, 1]]
+    assert ("lifelong_return/seed1", "iteration/seed1", 6) not in got
+    # The critic where it was measured only (the first iteration of each task).
+    assert sorted(k[2] for k in got if k[0] == "critic_ev/seed0") == [1, 4]
+
+
+def test_console_logs_the_same_scalars_to_an_offline_wandb_run(console, tmp_path, monkeypatch):
+    """``--wandb``: one offline run per entry, no network or API key; its file holds every scalar TensorBoard
+    gets, each on its axis."""
+    import wandb_file
+
+    for var in ("WANDB_MODE", "WANDB_API_KEY", "WANDB_BASE_URL"):
+        monkeypatch.delenv(var, raising=False)
+    for var in ("WANDB_CACHE_DIR", "WANDB_CONFIG_DIR", "WANDB_DATA_DIR"):
+        monkeypatch.setenv(var, str(tmp_path / "wandb-home"))
+    show = console.Console(lambda line: None, str(tmp_path), wandb="jcomps-test", wandb_group="study")
+    metrics = _varied_chunk()
+    show({"event": "chunk", "program": "ppo_tl", "entry": "ppo_tl", "start": 0, "stop": 2, "num_tasks": 2,
+          "seeds": [0, 1], "metrics": metrics, "per_task": metrics})
+    show.close()
+    [path] = (tmp_path / "wandb").glob("offline-run-*/run-*.wandb")
+    logged = {}
+    for row in wandb_file.history(path):
+        axis = next(k for k in row if k == "task" or k.startswith("iteration/"))  # one axis per row
+        logged.update({(tag, axis, row[axis]): value for tag, value in row.items() if tag != axis})
+    expected = {(tag, axis, step): value for tag, value, axis, step in console.chunk_scalars(metrics, 0, 2)}
+    assert logged.keys() == expected.keys()
+    np.testing.assert_allclose([logged[k] for k in expected], list(expected.values()), rtol=1e-6)
+    axes = wandb_file.step_metrics(path)
+    assert axes["iterations_to_success/*"] == "task" and axes["lifelong_return/seed1"] == "iteration/seed1"
