@@ -24,6 +24,7 @@ import argparse
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import threading
@@ -34,6 +35,7 @@ sys.path.insert(0, HERE)
 
 from jcomps import envs, hostdevices, paper, report, reproduction, results, rundir  # noqa: E402
 from jcomps.checkpoint import RunError  # noqa: E402
+from progress import _clock  # noqa: E402
 
 STUDY = "study.json"
 FORMAT = 1
@@ -175,6 +177,30 @@ def run_all(args) -> list[tuple[str, str, int]]:
           f"{args.study['devices']} device(s) each, {args.parallel} at a time", flush=True)
     os.makedirs(os.path.join(args.out, "logs"), exist_ok=True)
     lock, running, failed, began = threading.Lock(), [], [], time.time()
+    previous = signal.signal(signal.SIGTERM, _interrupt)  # a kill stops the runs as Ctrl-C does
+    try:
+        _schedule(args, proto, todo, running, failed, lock, began)
+    except KeyboardInterrupt:
+        for _, method, process, _, _ in running:
+            process.terminate()
+        for sequence, method, process, pump, _ in running:
+            process.wait()
+            pump.join()
+            failed.append((sequence, method, process.returncode))
+        print(f"stopped: {len(running)} run(s) interrupted; `--out {args.out} --resume` continues them from their "
+              "last checkpoints", file=sys.stderr, flush=True)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    return failed
+
+
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
+def _schedule(args, proto, todo, running, failed, lock, began) -> None:
+    """Starts the runs of ``todo``, ``--parallel`` at a time, until every one has ended (``running``: those
+    running; ``failed``: (sequence, method, exit code) of those that failed)."""
     stop = False
     while todo or running:
         while todo and len(running) < args.parallel and not stop:
@@ -205,12 +231,6 @@ def run_all(args) -> list[tuple[str, str, int]]:
                 stop = stop or process.returncode == 2
         if stop and todo:
             todo.clear()
-    return failed
-
-
-def _clock(seconds: float) -> str:
-    seconds = int(seconds)
-    return f"{seconds // 3600}h{seconds // 60 % 60:02d}m" if seconds >= 3600 else f"{seconds // 60}m{seconds % 60:02d}s"
 
 
 def merge_sequence(args, sequence: str, partial: bool):

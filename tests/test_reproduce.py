@@ -222,3 +222,23 @@ def test_print_commands_creates_the_study_and_prints_each_run(reproduce, capsys,
                              f"--chunk-tasks 1 --heldout-iterations 5 --budget 5 --out {out}/stationary/comps "
                              f"--devices {json.loads((out / 'study.json').read_text())['devices']}")
     assert all("run_sequence.py" in line and "--resume" not in line for line in lines)
+
+
+def test_an_interrupted_study_stops_its_runs_and_says_how_to_continue(reproduce, monkeypatch, tmp_path, capsys):
+    """Ctrl-C or SIGTERM while a run runs: the run is terminated (its checkpoints stay), none is left behind."""
+    import sys
+
+    args = reproduce.parse_args(["point_goal", "--out", str(tmp_path / "s"), "--methods", "comps", "ppo_tl",
+                                 "--parallel", "2", "--devices", "1"])
+    sleeper = [sys.executable, "-c", "import time; print('running', flush=True); time.sleep(600)"]
+    monkeypatch.setattr(reproduce, "command", lambda *_: sleeper)
+
+    def interrupt(_):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(reproduce.time, "sleep", interrupt)  # the scheduler's first wait: both runs started
+    failed = reproduce.run_all(args)
+    assert sorted((s, m) for s, m, _ in failed) == [("non-stationary", "comps"), ("non-stationary", "ppo_tl")]
+    assert all(code != 0 for *_, code in failed)
+    err = capsys.readouterr().err
+    assert "2 run(s) interrupted" in err and "--resume` continues them" in err
