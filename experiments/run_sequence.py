@@ -45,7 +45,7 @@ def _set_host_devices(argv, processes: int = 1) -> None:
                 stored = json.load(f).get("devices")
             ok = isinstance(stored, int) and stored >= processes and stored % processes == 0
             count = str(stored // processes) if ok else None  # else the resume is refused, naming the counts
-        except (OSError, ValueError):
+        except (OSError, ValueError, AttributeError):
             pass  # parse_args reports a missing or unreadable run directory
     from jcomps import hostdevices
 
@@ -75,7 +75,7 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 
 from jcomps import cli, compile_cache, continual, distributed, envs, experiment, hostdevices, methods  # noqa: E402
-from jcomps import report  # noqa: E402
+from jcomps import report, rundir  # noqa: E402
 from jcomps import grid as grids  # noqa: E402
 from jcomps.programs import Programs  # noqa: E402
 
@@ -210,8 +210,7 @@ def _from_stored(args):
     path = os.path.join(args.out, "run.json")
     if not os.path.isfile(path):
         raise ValueError(f"--resume: {args.out} holds no run (no run.json); start it without --resume")
-    with open(path) as f:
-        stored = json.load(f)
+    stored = rundir.read_json(path)
     args.stored = stored
     _count_chosen_tasks(args)
     args.run = cli.config_from_dict(experiment.RunConfig(), stored["run"], args)

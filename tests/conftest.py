@@ -143,6 +143,7 @@ runner = _script_fixture("runner", "run_sequence", "The runner (its ``parse_args
 merge_runs = _script_fixture("merge_runs", "merge_runs", "Merging runs (its ``merge``).")
 render = _script_fixture("render", "render", "Policy replays (its ``render``).")
 reproduce = _script_fixture("reproduce", "reproduce", "A family's experiments of the paper (its ``main``).")
+report_script = _script_fixture("report_script", "report", "Regenerating a run directory's report (its ``main``).")
 
 
 # The runner's tiny end-to-end run, shared by the tests of the host loop and of the run directory

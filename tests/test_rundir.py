@@ -125,3 +125,17 @@ def test_resume_refuses_a_run_made_before_the_checkpoints_format(runner, full_ru
     old, code, err = _refused_resume(runner, full_run, tmp_path, capsys, "old_format", edit)
     assert code == 2 and "explained variance" in err and "start it anew" in err
     assert not (old / "checkpoints" / "comps-unreadable").exists()  # refused before any checkpoint was read
+
+
+@pytest.mark.parametrize("content", ["{\"run\": {\"family\": \"point_go", "[1, 2]", "\udcff"])
+def test_a_corrupt_run_json_is_named_by_the_report_and_the_resume(runner, report_script, full_run, tmp_path, capsys,
+                                                                  content):
+    """A truncated, foreign or undecodable run.json: exit code 2 and a message naming the file, no traceback."""
+    bad = tmp_path / "bad"
+    shutil.copytree(full_run, bad, ignore=shutil.ignore_patterns("checkpoints"))
+    (bad / "run.json").write_bytes(content.encode("utf-8", "surrogateescape"))
+    for main, argv in ((runner.main, ["--out", str(bad), "--resume"]), (report_script.main, [str(bad)])):
+        with pytest.raises(SystemExit) as info:
+            main(argv)
+        err = capsys.readouterr().err
+        assert info.value.code == 2 and str(bad / "run.json") in err and "Traceback" not in err

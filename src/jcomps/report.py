@@ -38,7 +38,6 @@ significance table use each method's best point, and ``significance.md`` adds a 
 
 from __future__ import annotations
 
-import json
 import os
 from typing import Optional
 
@@ -436,8 +435,7 @@ def read_description(out: str) -> dict:
     run_json = os.path.join(out, "run.json")
     if not os.path.isfile(run_json):
         raise RunError(f"{out} is not a run directory (no run.json)")
-    with open(run_json) as f:
-        return json.load(f)
+    return rundir.read_json(run_json)
 
 
 def read_raws(out: str, description: dict, partial: bool = False) -> tuple[dict, Optional[dict]]:

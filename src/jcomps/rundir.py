@@ -34,6 +34,21 @@ def write_json(path: str, data) -> None:
     os.replace(tmp, path)
 
 
+def read_json(path: str) -> dict:
+    """The JSON object in ``path`` (a run directory's ``run.json``); RunError naming the file when it cannot be read
+    or is not one (a truncated or hand-edited file)."""
+    try:
+        with open(path) as f:
+            data = json.load(f)
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise RunError(f"{path} cannot be read ({err}); it is written by jcomps: restore it, or start the run "
+                       "anew in another directory") from err
+    if not isinstance(data, dict):
+        raise RunError(f"{path} holds a {type(data).__name__}, not the object jcomps writes; restore it, or start "
+                       "the run anew in another directory")
+    return data
+
+
 def _jsonable(x):
     if dataclasses.is_dataclass(x):
         return {f.name: _jsonable(getattr(x, f.name)) for f in dataclasses.fields(x)}
@@ -128,9 +143,8 @@ def _check_resumable(out: str, run_json: str, description: dict) -> None:
     the differences); fields added since the run was made, at their defaults, are filled into its ``run.json``."""
     if not os.path.isfile(run_json):
         raise RunError(f"--resume: {out} holds no run (no run.json); start it without --resume")
-    with open(run_json) as f:
-        stored = json.load(f)
-    made = stored.get("format", 1) if isinstance(stored, dict) else FORMAT
+    stored = read_json(run_json)
+    made = stored.get("format", 1)
     if isinstance(made, int) and made < FORMAT:
         why = "; ".join(FORMAT_CHANGES[f] for f in range(made + 1, FORMAT + 1))
         raise RunError(f"--resume: {out} was made by an earlier version of jcomps and cannot be resumed by this one "
