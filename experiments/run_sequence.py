@@ -75,7 +75,7 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 
 from jcomps import cli, compile_cache, continual, distributed, envs, experiment, hostdevices, methods  # noqa: E402
-from jcomps import report, rundir  # noqa: E402
+from jcomps import checkpoint, report, rundir  # noqa: E402
 from jcomps import grid as grids  # noqa: E402
 from jcomps.programs import Programs  # noqa: E402
 
@@ -255,6 +255,15 @@ def main(argv=None):
         results = report.write(args.out, baseline=args.baseline)
     except experiment.RunError as err:
         print(f"error: {err}", file=sys.stderr)
+        if cluster.distributed:
+            distributed.exit_now(2)
+        sys.exit(2)
+    except OSError as err:
+        if not checkpoint.disk_full(err):
+            raise
+        # Raw results, run.json or the report on a full disk (a checkpoint says so itself, as a RunError above).
+        print(f"error: no space left on the device writing {err.filename or args.out}; free space there, then "
+              f"continue with --out {args.out} --resume (from the run's last checkpoint)", file=sys.stderr)
         if cluster.distributed:
             distributed.exit_now(2)
         sys.exit(2)

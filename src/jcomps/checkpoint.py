@@ -13,6 +13,7 @@ step (renames it into place), so a step is there whole or not at all.
 
 from __future__ import annotations
 
+import errno
 import os
 import shutil
 import time
@@ -71,10 +72,53 @@ class Checkpoints:
         return dest
 
     def save(self, step: int, tree: dict):
-        """Writes checkpoint ``step`` (every process calls it; ``distributed.PeerLost`` if a process is gone)."""
-        with distributed.exchange(f"the writing of checkpoint step {step}"):
-            self.manager.save(step, args=self.ocp.args.StandardSave(tree), force=True)
-            self.manager.wait_until_finished()
+        """Writes checkpoint ``step`` (every process calls it; ``distributed.PeerLost`` if a process is gone). A disk
+        that fills while it writes ends in ``RunError`` (the half-written step removed; the steps before it kept,
+        so ``--resume`` continues from the last of them once there is space), not in Orbax's tracebacks."""
+        import absl.logging
+
+        need, free = self._space_needed(tree), shutil.disk_usage(self.directory).free
+        if free < need:  # Orbax's writer threads fail noisily on a full disk: refuse before writing
+            kept = self.manager.all_steps()
+            raise RunError(f"no space left on the device for checkpoint step {step} in {self.directory} (about "
+                           f"{need / 2**20:.1f} MiB needed, {free / 2**20:.1f} MiB free); free space there, then "
+                           f"continue the run with --resume" + (f" (from its last checkpoint, step {max(kept)})"
+                                                                 if kept else ""))
+        verbosity = absl.logging.get_verbosity()
+        absl.logging.set_verbosity(absl.logging.FATAL)  # Orbax logs its writer threads' failures, then raises
+        try:
+            with distributed.exchange(f"the writing of checkpoint step {step}"):
+                self.manager.save(step, args=self.ocp.args.StandardSave(tree), force=True)
+                self.manager.wait_until_finished()
+        except distributed.PeerLost:
+            raise
+        except Exception as err:  # noqa: BLE001 - Orbax reports a full disk as ValueError(RESOURCE_EXHAUSTED)
+            if not disk_full(err):
+                raise
+            for name in os.listdir(self.directory):
+                if name.startswith(f"{step}.") and "tmp" in name:
+                    shutil.rmtree(os.path.join(self.directory, name), ignore_errors=True)
+            self._open()
+            kept = self.manager.all_steps()
+            raise RunError(f"no space left on the device writing checkpoint step {step} in {self.directory} "
+                           f"({type(err).__name__}: {str(err)[:200]}); free space there, then continue the run "
+                           f"with --resume" + (f" (from its last checkpoint, step {max(kept)})" if kept else "")
+                           ) from None
+        finally:
+            absl.logging.set_verbosity(verbosity)
+
+    def _space_needed(self, tree: dict) -> int:
+        """Bytes a new step may take: a quarter more than the newest step on disk, or, for the first, a tenth more
+        than the arrays and 128 KiB of Orbax's metadata (a tiny run's step takes 172 KB, 35 files)."""
+        steps = self.manager.all_steps()
+        if steps:
+            newest = os.path.join(self.directory, str(max(steps)))
+            size = sum(os.path.getsize(os.path.join(d, f)) for d, _, files in os.walk(newest) for f in files)
+        else:
+            leaves = jax.tree.leaves(tree)
+            size = sum(np.asarray(x).nbytes if not isinstance(x, jax.Array) else x.nbytes for x in leaves)
+            return int(size * 1.1) + 192 * 1024
+        return int(size * 1.25) + 64 * 1024
 
     def restore_latest(self, like: dict, warn) -> Optional[tuple[int, dict]]:
         """The newest readable checkpoint (an unreadable one is set aside and reported through ``warn(message)``,
@@ -112,6 +156,14 @@ class Checkpoints:
             raise RunError("no readable checkpoint (unreadable ones were moved to "
                            f"{self.directory}-unreadable): " + " | ".join(errors))
         return None
+
+
+def disk_full(err: BaseException) -> bool:
+    """Whether ``err`` says the disk (or the user's quota) is full: an OSError of ENOSPC or EDQUOT, or Orbax's and
+    TensorStore's RESOURCE_EXHAUSTED."""
+    if isinstance(err, OSError) and err.errno in (errno.ENOSPC, errno.EDQUOT):
+        return True
+    return "RESOURCE_EXHAUSTED" in str(err) or "No space left" in str(err)
 
 
 def read_latest(directory: str, warn) -> Optional[tuple[int, dict]]:
