@@ -94,3 +94,24 @@ def test_the_readme_shows_the_quickstart_as_it_is():
     readme = (root / "README.md").read_text()
     quickstart = (root / "examples" / "quickstart.py").read_text()
     assert quickstart.strip() in [b.strip() for b in re.findall(r"```python\n(.*?)```", readme, flags=re.S)]
+
+
+def test_a_method_without_ppo_must_bring_its_own_held_out_meta_test(monkeypatch):
+    """The held-out meta-test adapts with the method's PPO config; a method with none and no ``adapt`` is refused
+    by name when it is made, not deep inside a run (it used to fail reading ``config.ppo`` in continual.py)."""
+    import dataclasses
+
+    @dataclasses.dataclass(frozen=True)
+    class NoPPOConfig:
+        learning_rate: float = 0.1
+
+    def make(family, config, progress_fn):
+        return methods.Method("no_ppo", config, family, init=lambda rng: None, learn_task=lambda s, t: (s, None))
+
+    monkeypatch.setitem(methods.REGISTRY, "no_ppo", methods.Registered(NoPPOConfig(), make))
+    with pytest.raises(TypeError, match="method 'no_ppo' has no PPO config .*give its Method an `adapt`"):
+        methods.make("no_ppo", envs.make("point_goal"))
+    adapting = lambda family, config, progress_fn: make(family, config, progress_fn)._replace(  # noqa: E731
+        adapt=lambda state, task, rng, iterations: (None, None))
+    monkeypatch.setitem(methods.REGISTRY, "no_ppo", methods.Registered(NoPPOConfig(), adapting))
+    assert methods.make("no_ppo", envs.make("point_goal")).adapt is not None

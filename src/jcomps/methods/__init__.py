@@ -214,7 +214,11 @@ def make(name: str, family: Family, config=None, progress_fn: Optional[ProgressF
         config = default_config(name, family)
     if not isinstance(config, cls):
         raise TypeError(f"method {name!r} takes a {cls.__name__}, got {type(config).__name__}")
-    return REGISTRY[name].make(family, config, progress_fn)
+    method = REGISTRY[name].make(family, config, progress_fn)
+    if method.adapt is None and not hasattr(config, "ppo"):
+        raise TypeError(f"method {name!r} has no PPO config ({cls.__name__}.ppo), so the held-out meta-test cannot "
+                        "adapt it with PPO: give its Method an `adapt` (its own meta-test; docs/extending.md)")
+    return method
 
 
 def env_steps_per_iteration(name: str, family: Family, config=None) -> int:
