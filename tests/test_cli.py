@@ -3,6 +3,7 @@
 import dataclasses
 import json
 import pathlib
+import re
 
 import numpy as np
 import pytest
@@ -68,8 +69,14 @@ def test_ci_runs_the_readme_test_command():
     assert block[1] in (ROOT / ".ci" / "run").read_text()
 
 
-def test_methods_registry_lists_ppo_tl():
-    assert "ppo_tl" in methods.METHODS
+def test_the_readme_describes_every_registered_method_and_family():
+    readme = (ROOT / "README.md").read_text()
+    for heading, names in (("### Methods", methods.names()), ("### Families", envs.names())):
+        lines = readme[readme.index(heading):].splitlines()[1:]
+        rows = [line for line in lines[:next(i for i, x in enumerate(lines) if x and not x.startswith("|"))]
+                if line.startswith("| `")]
+        listed = {n for row in rows for n in re.findall(r"`([a-z0-9_]+)`", row.split("|")[1])}
+        assert listed == set(names), heading
 
 
 def _others(name):

@@ -47,10 +47,13 @@ def test_the_meta_step_produces_the_next_tasks_policy(run):
     assert not np.allclose(np.asarray(w1), np.asarray(w0))
 
 
-def test_metrics_have_the_shared_shape(run):
+def test_metrics_are_the_rl_steps_iterations(run):
     _, _, _, _, (m1, m2) = run
-    chex.assert_shape(m1.per_iteration.success_rate, (3,))
-    assert 1 <= int(m1.iterations) <= 3
+    for m in (m1, m2):  # one entry per budgeted iteration, valid for those that ran
+        chex.assert_shape(m.per_iteration.success_rate, (3,))
+        its = int(m.iterations)
+        assert 1 <= its <= 3 and bool(m.solved) == (its < 3 or float(m.per_iteration.success_rate[2]) >= 0.7)
+        np.testing.assert_array_equal(m.per_iteration.valid, np.arange(3) < its)
 
 
 def test_the_meta_phase_reports_its_health(run):
@@ -189,9 +192,14 @@ def test_gmps_ppo_is_registered_without_importance_weights():
 def test_comps_in_the_continual_loop():
     family = envs.make("point_goal")
     config = comps.CoMPSConfig(ppo=SMALL_PPO, meta=SMALL_META, max_tasks=2, num_skilled=2, num_offpolicy=3)
-    _, metrics = continual.run_seeds(methods.make("comps", family, config), envs.sequence(family, num_tasks=2),
-                                     jax.random.split(jax.random.PRNGKey(0), 2))
-    chex.assert_shape(metrics.iterations, (2, 2))
+    states, metrics = continual.run_seeds(methods.make("comps", family, config), envs.sequence(family, num_tasks=2),
+                                          jax.random.split(jax.random.PRNGKey(0), 2))
+    chex.assert_shape(metrics.iterations, (2, 2))  # [seeds, tasks]
+    np.testing.assert_array_equal(states.stores.task_valid, True)  # both seeds learnt both tasks into their slots
+    np.testing.assert_array_equal(states.task_index, [2, 2])
+    # The seeds are independent draws: their policies differ.
+    w = np.asarray(states.params.policy["mean"][0]["w"])
+    assert not np.allclose(w[0], w[1])
 
 
 def test_learning_past_max_tasks_is_refused():

@@ -146,14 +146,19 @@ def _varied_chunk(seeds=2, tasks=2, budget=3):
     return metrics._replace(task=task)
 
 
-def test_console_writes_tensorboard(console, tmp_path):
-    from tensorboardX.event_file_writer import EventFileWriter  # noqa: F401 (installed with the dev extras)
+def test_console_writes_the_scalars_to_tensorboard(console, tmp_path):
+    import tensorboard_file
+
     show = console.Console(lambda line: None, str(tmp_path), tensorboard=True)
     metrics = _varied_chunk()
     show({"event": "chunk", "program": "ppo_tl", "entry": "ppo_tl", "start": 0, "stop": 2, "num_tasks": 2,
           "seeds": [0, 1], "metrics": metrics, "per_task": metrics})
     show.close()
-    assert any(p.name.startswith("events.out.tfevents") for p in (tmp_path / "tensorboard" / "ppo_tl").iterdir())
+    [path] = (tmp_path / "tensorboard" / "ppo_tl").glob("events.out.tfevents*")
+    logged = tensorboard_file.scalars(path)
+    expected = {(tag, step): value for tag, value, _, step in console.chunk_scalars(metrics, 0, 2)}
+    assert logged.keys() == expected.keys()
+    np.testing.assert_allclose([logged[k] for k in expected], list(expected.values()), rtol=1e-6)
 
 
 def test_the_scalars_are_the_metrics_on_their_axes(console):

@@ -57,10 +57,6 @@ EXACT_TOL = dict(rtol=1e-5, atol=1e-5)
 MJX_TOL = dict(rtol=1e-2, atol=5e-2)
 
 
-def test_family_names_are_the_documented_ones():
-    assert tuple(envs.FAMILIES) == tuple(FAMILIES) + ("metaworld", "metaworld_v1")
-
-
 # ------------------------------------------------------------------------------------ compiled rollouts
 
 
