@@ -433,6 +433,8 @@ class WandbLogger:
             run.log(row)
 
     def close(self) -> None:
+        """Finishes the runs and stops wandb's service, which writes out what it still holds."""
         for run in self.runs.values():
             run.finish()
         self.runs = {}
+        self.wandb.teardown()

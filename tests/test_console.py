@@ -189,8 +189,10 @@ def test_console_logs_the_same_scalars_to_an_offline_wandb_run(console, tmp_path
           "seeds": [0, 1], "metrics": metrics, "per_task": metrics})
     show.close()
     [path] = (tmp_path / "wandb").glob("offline-run-*/run-*.wandb")
+    rows = wandb_file.history(path)
+    assert rows, f"no history in {path}; its records: {wandb_file.record_types(path)}"
     logged = {}
-    for row in wandb_file.history(path):
+    for row in rows:
         axis = next(k for k in row if k == "task" or k.startswith("iteration/"))  # one axis per row
         logged.update({(tag, axis, row[axis]): value for tag, value in row.items() if tag != axis})
     expected = {(tag, axis, step): value for tag, value, axis, step in console.chunk_scalars(metrics, 0, 2)}

@@ -77,3 +77,15 @@ def step_metrics(path) -> dict:
         if rec.WhichOneof("record_type") == "metric" and rec.metric.step_metric:
             out[rec.metric.name or rec.metric.glob_name] = rec.metric.step_metric
     return out
+
+
+def record_types(path) -> list[str]:
+    """The kind of every record of the file, in order (what a test reports when something is missing)."""
+    from wandb.proto import wandb_internal_pb2 as pb
+
+    out = []
+    for data in records(path):
+        rec = pb.Record()
+        rec.ParseFromString(data)
+        out.append(rec.WhichOneof("record_type"))
+    return out
