@@ -21,7 +21,6 @@ Bad options exit with code 2 naming the option.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
 import signal
@@ -102,8 +101,7 @@ def _study(args) -> dict:
         if not os.path.isfile(path):
             raise ValueError(f"{args.out} holds no study ({STUDY} missing); start it without --resume/--partial")
         try:
-            with open(path) as f:
-                stored = json.load(f)
+            stored = rundir.read_json(path)  # RunError (a ValueError) naming the file when it is not JSON
             proto = reproduction.Protocol.from_json(stored["protocol"])
             devices = int(stored["devices"])
         except (OSError, ValueError, KeyError, TypeError) as err:

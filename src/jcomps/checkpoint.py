@@ -72,9 +72,11 @@ class Checkpoints:
         return dest
 
     def save(self, step: int, tree: dict):
-        """Writes checkpoint ``step`` (every process calls it; ``distributed.PeerLost`` if a process is gone). A disk
-        that fills while it writes ends in ``RunError`` (the half-written step removed; the steps before it kept,
-        so ``--resume`` continues from the last of them once there is space), not in Orbax's tracebacks."""
+        """Writes checkpoint ``step`` (every process calls it; ``distributed.PeerLost`` if a process is gone). Too
+        little free space for it ends in ``RunError`` before anything is written (the steps before it kept, so
+        ``--resume`` continues from the last of them once there is space); a disk that fills while Orbax writes
+        anyway (the estimate was short) ends in ``RunError`` too, after Orbax's threads have printed their
+        tracebacks, with its temporary step removed where it can be."""
         import absl.logging
 
         need, free = self._space_needed(tree), shutil.disk_usage(self.directory).free
