@@ -2,8 +2,8 @@
 from starting ``run_sequence.py`` to its first training iteration, cold and from the compile cache.
 
 ``programs`` mode (the default) builds the runner's programs for each family × method exactly as
-``experiments/run_sequence.py`` does with its defaults (``jcomps.programs.Programs``: members sharded over the
-devices, the default evaluations) and times apart, for each program (``jcomps.programs.PARTS``: ``init``,
+``experiments/run_sequence.py`` does with its defaults (``jcomps.runner.programs.Programs``: members sharded over the
+devices, the default evaluations) and times apart, for each program (``jcomps.runner.programs.PARTS``: ``init``,
 ``learn``: one task's learning, the program a run waits for, ``evaluate_task``: the evaluations after each task,
 ``heldout``: the held-out meta-test and learnt tasks after each chunk):
 
@@ -35,7 +35,7 @@ import sys
 import tempfile
 import time
 
-from jcomps import hostdevices
+from jcomps.runner import hostdevices
 
 
 def bench_programs(family_name: str, method: str, seeds: int, devices: int, num_tasks: int,
@@ -43,9 +43,10 @@ def bench_programs(family_name: str, method: str, seeds: int, devices: int, num_
     import jax
     import numpy as np
 
-    from jcomps import continual, envs, grid as grids, methods
-    from jcomps.members import eval_keys, method_keys, padded_seeds
-    from jcomps.programs import Programs
+    from jcomps import continual, envs, methods
+    from jcomps.runner import grid as grids
+    from jcomps.runner.members import eval_keys, method_keys, padded_seeds
+    from jcomps.runner.programs import Programs
 
     family = envs.make(family_name)
     config = methods.resolve_config(method, family, num_tasks=num_tasks)  # as run_sequence.py builds it

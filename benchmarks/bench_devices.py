@@ -15,14 +15,14 @@ import json
 import subprocess
 import sys
 
-from jcomps import hostdevices
+from jcomps.runner import hostdevices
 
 CHILD = r"""
 import dataclasses, json, sys, time
 import jax, jax.numpy as jnp, numpy as np
 from jcomps import continual, envs, methods
-from jcomps.members import num_devices, task_sequences
-from jcomps.programs import Programs
+from jcomps.runner.members import num_devices, task_sequences
+from jcomps.runner.programs import Programs
 a = json.loads(sys.argv[1])
 family = envs.make(a["family"])
 config = methods.config_class(a["method"])()
@@ -49,7 +49,7 @@ print(json.dumps({"devices": devices, "steps": steps, "seconds": min(times), "fi
 
 
 def main():
-    from jcomps import compile_cache
+    from jcomps.runner import compile_cache
 
     compile_cache.from_environment()  # a second run of the benchmark loads its programs
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])

@@ -29,7 +29,7 @@ LAUNCHER = os.path.join(HERE, "..", "scripts", "local_cluster.sh")
 
 def child(argv):
     """One process of a case: builds and times the chunk program; process 0 prints the figures as JSON."""
-    from jcomps import distributed, hostdevices
+    from jcomps.runner import distributed, hostdevices
 
     parser = argparse.ArgumentParser()
     parser.add_argument("--child", required=True)
@@ -48,8 +48,8 @@ def child(argv):
     import numpy as np
 
     from jcomps import continual, envs, methods
-    from jcomps.members import num_devices, task_sequences
-    from jcomps.programs import Programs
+    from jcomps.runner.members import num_devices, task_sequences
+    from jcomps.runner.programs import Programs
 
     a = json.loads(args.child)
     family = envs.make(a["family"])
@@ -95,7 +95,7 @@ def main():
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--processes", type=int, default=2)
     args = parser.parse_args()
-    from jcomps import hostdevices
+    from jcomps.runner import hostdevices
 
     n = args.processes
     payload = json.dumps({k: getattr(args, k) for k in ("family", "method", "seeds", "tasks", "budget", "repeats")})

@@ -1,6 +1,6 @@
 """Throughput of a hyperparameter grid against the same number of seeds: the runner's own chunk programs.
 
-One process, one device count: it compiles the runner's chunk program (``jcomps.experiment``) for a 12-point
+One process, one device count: it compiles the runner's chunk program (``jcomps.runner.experiment``) for a 12-point
 traced grid (learning_rate 0.01, 0.005, 0.001, 0.0001 × init_std 0.3, 0.5, 0.7) × 2 seeds, and for 24 seeds of
 one config (the defaults), same family, method, tasks and budget; runs one chunk of each to warm up, then times
 the chunk again (best of ``--repeats``, the two cases taking turns) and counts the env steps it made
@@ -18,11 +18,11 @@ from __future__ import annotations
 
 import argparse
 
-from jcomps import hostdevices
+from jcomps.runner import hostdevices
 
 
 def main():
-    from jcomps import compile_cache
+    from jcomps.runner import compile_cache
 
     compile_cache.from_environment()  # a second run of the benchmark loads its programs
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -42,9 +42,10 @@ def main():
     import jax.numpy as jnp
     import numpy as np
 
-    from jcomps import continual, envs, grid, methods
-    from jcomps.members import layout, num_devices
-    from jcomps.programs import Programs
+    from jcomps import continual, envs, methods
+    from jcomps.runner import grid
+    from jcomps.runner.members import layout, num_devices
+    from jcomps.runner.programs import Programs
 
     family = envs.make(args.family)
     cls = methods.config_class(args.method)

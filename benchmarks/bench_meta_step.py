@@ -19,8 +19,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from jcomps import buffers, meta, networks
-from jcomps.acting import Trajectory
+from jcomps.training import buffers, meta, networks
+from jcomps.training.acting import Trajectory
 
 OBS, ACT, T, HIDDEN = 27, 8, 200, (128, 64)
 
@@ -80,7 +80,7 @@ def bench(num_tasks: int, repeats: int, first_order: bool, chunk: int = 0) -> st
 
 
 def main():
-    from jcomps import compile_cache
+    from jcomps.runner import compile_cache
 
     compile_cache.from_environment()  # a second run of the benchmark loads its programs
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])

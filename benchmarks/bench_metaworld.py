@@ -13,7 +13,8 @@ every method runs it, on ``workers`` processes (the caller's included):
 Each ``workers`` case is compared with raw stepping on as many fresh processes, each replaying its share of the
 batch (started together after their set-up, timed by the slowest), so ``ratio`` is our cost against the
 simulator's at equal parallelism (goal >= 0.9). Fresh processes for raw stepping, because our workers are light
-processes too: MetaWorld steps 5-10% slower in a process that has imported JAX (docs/design.md). One ``key=value`` line per case::
+processes too: MetaWorld steps 5-10% slower in a process that has imported JAX (docs/design.md). One ``key=value`` line
+per case::
 
     python benchmarks/bench_metaworld.py [--envs 0 1 2] [--batch 20] [--workers 1 2] [--paths rollout step]
 """
@@ -78,7 +79,7 @@ def _raw_worker(env: int, variant: int, path: str) -> None:
 
 
 def main():
-    from jcomps import compile_cache
+    from jcomps.runner import compile_cache
 
     compile_cache.from_environment()  # a second run of the benchmark loads its programs
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -91,9 +92,10 @@ def main():
 
     import jax
 
-    from jcomps import acting, envs, methods, ppo
+    from jcomps import envs, methods
     from jcomps.envs import metaworld as mw
     from jcomps.envs import metaworld_host as host
+    from jcomps.training import acting, ppo
 
     family = envs.make("metaworld")
     config = methods.default_config("ppo_tl", "metaworld").ppo

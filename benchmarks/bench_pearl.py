@@ -5,9 +5,10 @@ One iteration of ``pearl.learn_task`` with the family's default config (oyster's
 prior-z collection, from a state whose replay buffer already holds one batch, so the gradient steps sample real
 data): ``num_trajectories`` episodes of T_max steps with the tanh-Gaussian policy (the prior-z share, then the
 posterior's), the writes to the buffers, and ``num_updates`` gradient steps (critics, encoder, actor, Polyak;
-``default``: the family's ratio of gradient steps to env steps), against ``num_trajectories`` · T_max raw steps with precomputed actions in one jitted scan. The
-rollout alone (PEARL's policy) is timed too, so the gradient steps' share is visible. One line per case, ``key=value``
-pairs ending in ``ratio=<PEARL iteration throughput / raw throughput>`` (median over alternating timed pairs).
+``default``: the family's ratio of gradient steps to env steps), against ``num_trajectories`` · T_max raw steps with
+precomputed actions in one jitted scan. The rollout alone (PEARL's policy) is timed too, so the gradient steps' share is
+visible. One line per case, ``key=value`` pairs ending in ``ratio=<PEARL iteration throughput / raw throughput>``
+(median over alternating timed pairs).
 
     python benchmarks/bench_pearl.py [--families cheetah_vel] [--num-updates 64 default] [--repeats 5]
 """
@@ -20,10 +21,10 @@ import time
 
 import jax
 import numpy as np
-
 from bench_rollout import make_raw, seconds  # the same raw baseline and timer (this folder is on sys.path)
-from jcomps import acting, envs, methods
-from jcomps.methods import pearl
+
+from jcomps import envs, methods
+from jcomps.training import acting
 
 
 def bench(name: str, num_updates, repeats: int) -> str:
@@ -69,7 +70,7 @@ def bench(name: str, num_updates, repeats: int) -> str:
 
 
 def main():
-    from jcomps import compile_cache
+    from jcomps.runner import compile_cache
 
     compile_cache.from_environment()  # a second run of the benchmark loads its programs
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])

@@ -4,7 +4,7 @@ For each member count M (seeds, vmapped on one device) the script times, in one 
 
 - ``raw``: T_max steps of M × B fresh episodes of ``family.step`` in one jitted ``lax.scan``, precomputed
   actions (B = the method's trajectories per iteration): what the simulator alone costs;
-- ``program``: the runner's own compiled chunk program (``jcomps.programs.Programs``) for the method, with
+- ``program``: the runner's own compiled chunk program (``jcomps.runner.programs.Programs``) for the method, with
   the family's default config, on the first ``--tasks`` tasks of the non-stationary sequence with budget
   ``--budget`` (no backward or held-out evaluation): rollouts, PPO updates, experience stores and meta steps;
   env steps = the iterations it ran × B × T_max;
@@ -27,7 +27,7 @@ import argparse
 import os
 import time
 
-from jcomps import hostdevices
+from jcomps.runner import hostdevices
 
 
 def _seconds(fn, *args):
@@ -45,9 +45,10 @@ def bench(family_name: str, method: str, members: int, tasks: int, budget: int, 
     import jax.numpy as jnp
     import numpy as np
 
-    from jcomps import acting, continual, envs, methods, ppo
-    from jcomps.members import eval_keys, method_keys
-    from jcomps.programs import Programs
+    from jcomps import continual, envs, methods
+    from jcomps.runner.members import eval_keys, method_keys
+    from jcomps.runner.programs import Programs
+    from jcomps.training import acting, ppo
 
     family = envs.make(family_name)
     config = methods.resolve_config(method, family, shared={"budget": budget}, num_tasks=tasks)
@@ -122,7 +123,7 @@ def bench(family_name: str, method: str, members: int, tasks: int, budget: int, 
 
 
 def main():
-    from jcomps import compile_cache
+    from jcomps.runner import compile_cache
 
     compile_cache.from_environment()  # a second run of the benchmark loads its programs
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])

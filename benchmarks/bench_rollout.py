@@ -1,7 +1,7 @@
 """Throughput of the PPO rollout (policy sampling included) against raw vmapped ``env.step``.
 
 Both run T_max steps of B fresh episodes in one jitted ``lax.scan`` on the same family and batch; "raw"
-feeds precomputed actions to ``family.step``, "rollout" is ``jcomps.acting.rollout`` with a [128, 64]
+feeds precomputed actions to ``family.step``, "rollout" is ``jcomps.training.acting.rollout`` with a [128, 64]
 Gaussian policy. One line per case, ``key=value`` pairs ending in ``ratio=<rollout/raw>`` (throughput ratio,
 the median over alternating timed pairs; ``best_ratio`` compares the best times instead).
 
@@ -16,7 +16,8 @@ import time
 import jax
 import numpy as np
 
-from jcomps import acting, envs, ppo
+from jcomps import envs
+from jcomps.training import acting, ppo
 
 
 def seconds(fn, args):
@@ -78,7 +79,7 @@ def make_raw(family, task, batch: int):
 
 
 def main():
-    from jcomps import compile_cache
+    from jcomps.runner import compile_cache
 
     compile_cache.from_environment()  # a second run of the benchmark loads its programs
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])

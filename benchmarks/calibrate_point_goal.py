@@ -18,11 +18,12 @@ import time
 import jax
 import numpy as np
 
-from jcomps import envs, methods, ppo
+from jcomps import envs, methods
+from jcomps.training import ppo
 
 
 def main():
-    from jcomps import compile_cache
+    from jcomps.runner import compile_cache
 
     compile_cache.from_environment()  # a second run of the benchmark loads its programs
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])

@@ -27,9 +27,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jcomps import acting, envs, hostdevices, methods, networks, ppo, statistics, vtrace
+from jcomps import envs, methods
+from jcomps.analysis import statistics
+from jcomps.configs import parse_value
 from jcomps.numerics import masked_var
-from jcomps.cli import parse_value
+from jcomps.runner import hostdevices
+from jcomps.training import acting, networks, ppo, vtrace
 
 
 def parse_sets(items: list[str]) -> dict:

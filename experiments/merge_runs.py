@@ -25,8 +25,9 @@ import os
 import shutil
 import sys
 
-from jcomps import distributed, experiment, report, results, rundir
-from jcomps.checkpoint import RunError
+from jcomps.analysis import report
+from jcomps.runner import distributed, experiment, results, rundir
+from jcomps.runner.checkpoint import RunError
 
 
 def merged_description(descriptions: list) -> dict:

@@ -1,5 +1,5 @@
 """What the runner shows and logs: progress lines, per-task results and TensorBoard, from the events of
-``jcomps.experiment`` (its one ``progress_fn`` callback; every kind of event: ``experiment.EVENTS``). Host work
+``jcomps.runner.experiment`` (its one ``progress_fn`` callback; every kind of event: ``experiment.EVENTS``). Host work
 lives here, at the edge: nothing under ``src/jcomps`` prints.
 """
 
@@ -11,9 +11,10 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from jcomps import experiment, statistics
-from jcomps import continual_metrics as cm
-from jcomps.checkpoint import RunError
+from jcomps.analysis import continual_metrics as cm
+from jcomps.analysis import statistics
+from jcomps.runner import experiment
+from jcomps.runner.checkpoint import RunError
 
 
 class Progress:
@@ -142,11 +143,11 @@ def _clock(seconds: float) -> str:
 
 
 class Console:
-    """A ``jcomps.experiment.ProgressReceiver``: prints progress lines (at most every ``interval`` seconds per
+    """A ``jcomps.runner.experiment.ProgressReceiver``: prints progress lines (at most every ``interval`` seconds per
     program), every task's iterations-to-success, non-finite warnings and checkpoint warnings through ``log``; with
     ``tensorboard``, also writes TensorBoard logs under ``out/tensorboard/<entry>``, with ``wandb`` (a project) the
     same scalars to Weights & Biases (``WandbLogger``; ``close`` finishes its runs). Each kind of event
-    (``jcomps.experiment.EVENTS``) has its handler; kinds it does not show are ignored."""
+    (``jcomps.runner.experiment.EVENTS``) has its handler; kinds it does not show are ignored."""
 
     def __init__(self, log: Callable[[str], None] = print, out: Optional[str] = None, tensorboard: bool = False,
                  interval: float = 10.0, wandb: Optional[str] = None, wandb_group: Optional[str] = None):
@@ -328,8 +329,8 @@ def _learnt_means(per_task, learnt) -> tuple[float, float]:
 
 
 def meta_health_text(meta, t: int, slot: int) -> str:
-    """One line on the meta phase after task position ``t`` of ``meta`` (``jcomps.meta.MetaMetrics`` with leading
-    [seeds, tasks]; ``slot``: that task's experience slot): the value heads' fit to their data's returns before
+    """One line on the meta phase after task position ``t`` of ``meta`` (``jcomps.training.meta.MetaMetrics`` with
+    leading [seeds, tasks]; ``slot``: that task's experience slot): the value heads' fit to their data's returns before
     and after, the newest head's, how much the old tasks still contribute, and what the inner step gains in the outer
     loss (L(θ) − L(φ_j), mean over the seen slots, and the newest task's)."""
     start = _at_task(meta.start, t)

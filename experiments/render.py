@@ -28,8 +28,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jcomps import checkpoint, continual, distributed, envs, experiment, members, methods, report
-from jcomps import grid as grids
+from jcomps import continual, envs, methods
+from jcomps.analysis import report
+from jcomps.runner import checkpoint, distributed, experiment, members
+from jcomps.runner import grid as grids
 
 
 def _episodes(family, act, policy, task, rng, episodes: int, mean):

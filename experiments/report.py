@@ -10,7 +10,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from jcomps import distributed, experiment, report
+from jcomps.analysis import report
+from jcomps.runner import distributed, experiment
 
 
 def main(argv=None):

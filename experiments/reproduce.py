@@ -13,8 +13,8 @@ starts: one per core divided among the parallel runs). When they have finished, 
 (``OUT/<sequence>/merged/``, as ``merge_runs.py`` does) and the study's report is written: ``OUT/report.md``
 (the p-value table in the paper's format beside the paper's published p-values, the table of the paper's claims
 with what this study shows for each), ``OUT/reproduction.json`` and ``OUT/figures/`` (the paper's Figure 3 panel,
-the lifelong return). ``jcomps.reproduction`` has the protocols and the tables, ``jcomps.paper`` the paper's
-numbers. Options after ``--`` go to every run (``-- --budget 300 --set comps.meta.outer_learning_rate=0.005``).
+the lifelong return). ``jcomps.analysis.reproduction`` has the protocols and the tables, ``jcomps.analysis.paper`` the
+paper's numbers. Options after ``--`` go to every run (``-- --budget 300 --set comps.meta.outer_learning_rate=0.005``).
 Bad options exit with code 2 naming the option.
 """
 
@@ -32,9 +32,12 @@ import time
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 
-from jcomps import envs, hostdevices, paper, report, reproduction, results, rundir  # noqa: E402
-from jcomps.checkpoint import RunError  # noqa: E402
 from progress import _clock  # noqa: E402
+
+from jcomps import envs  # noqa: E402
+from jcomps.analysis import paper, report, reproduction
+from jcomps.runner import hostdevices, results, rundir
+from jcomps.runner.checkpoint import RunError  # noqa: E402
 
 STUDY = "study.json"
 FORMAT = 1

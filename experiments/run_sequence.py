@@ -15,7 +15,7 @@ Every option is derived from a config dataclass (``RunConfig``, ``EvalConfig`` a
 let every core work). The run directory gets ``run.json``, checkpoints after every chunk of tasks,
 ``results.json``, ``plots/*.png`` and ``significance.md``; ``experiments/report.py DIR`` regenerates the last
 three. ``--grid FIELD=V1,V2,...`` (repeatable) runs every method at every point of the product of the values, an
-axis like the seeds (see ``jcomps.grid``). ``--set METHOD.FIELD[.FIELD]=VALUE`` changes one method alone.
+axis like the seeds (see ``jcomps.runner.grid``). ``--set METHOD.FIELD[.FIELD]=VALUE`` changes one method alone.
 Bad options exit with code 2 and a message naming the option.
 """
 
@@ -47,7 +47,7 @@ def _set_host_devices(argv, processes: int = 1) -> None:
             count = str(stored // processes) if ok else None  # else the resume is refused, naming the counts
         except (OSError, ValueError, AttributeError):
             pass  # parse_args reports a missing or unreadable run directory
-    from jcomps import hostdevices
+    from jcomps.runner import hostdevices
 
     if count is None:
         hostdevices.configure(hostdevices.cores())
@@ -56,9 +56,9 @@ def _set_host_devices(argv, processes: int = 1) -> None:
 
 
 def _start(argv):
-    """Before JAX starts: this process's place in a run of several (``jcomps.distributed``), then its host devices,
-    then joining the others."""
-    from jcomps import distributed
+    """Before JAX starts: this process's place in a run of several (``jcomps.runner.distributed``), then its host
+    devices, then joining the others."""
+    from jcomps.runner import distributed
 
     cluster = distributed.from_argv(argv, "run_sequence.py")
     _set_host_devices(argv, cluster.num_processes)
@@ -74,10 +74,11 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from jcomps import cli, compile_cache, continual, distributed, envs, experiment, hostdevices, methods  # noqa: E402
-from jcomps import checkpoint, report, rundir  # noqa: E402
-from jcomps import grid as grids  # noqa: E402
-from jcomps.programs import Programs  # noqa: E402
+from jcomps import configs, continual, envs, methods  # noqa: E402
+from jcomps.analysis import report
+from jcomps.runner import checkpoint, compile_cache, distributed, experiment, hostdevices, rundir  # noqa: E402
+from jcomps.runner import grid as grids  # noqa: E402
+from jcomps.runner.programs import Programs  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from progress import Console  # noqa: E402
@@ -122,8 +123,8 @@ def parse_args(argv=None):
                              "over the shared options, recorded in run.json (on --resume the stored ones are used; "
                              "different ones are refused)")
     distributed.add_args(parser)
-    cli.add_config_args(parser, [experiment.RunConfig, continual.EvalConfig])
-    cli.add_config_args(parser, [methods.config_class(m) for m in methods.METHODS], envs.settings_by_field())
+    configs.add_config_args(parser, [experiment.RunConfig, continual.EvalConfig])
+    configs.add_config_args(parser, [methods.config_class(m) for m in methods.METHODS], envs.settings_by_field())
     args = parser.parse_args(argv)
     if args.devices is not None and args.devices < 1:
         parser.error(f"--devices must be >= 1, got {args.devices}")
@@ -193,13 +194,13 @@ def _count_chosen_tasks(args):
 
 def _from_options(args):
     _count_chosen_tasks(args)
-    args.run = cli.build_config(experiment.RunConfig, args)
-    args.eval = cli.build_config(continual.EvalConfig, args)
+    args.run = configs.build_config(experiment.RunConfig, args)
+    args.eval = configs.build_config(continual.EvalConfig, args)
     # Each method's config from its layers (methods.resolve_config): its registered default on the family, the
     # shared options, one task slot per task, then --set for that method alone.
     defaults = {name: methods.default_config(name, args.run.family) for name in args.run.methods}
-    args.overrides = cli.parse_overrides(args.set_specs, defaults)
-    args.configs = {name: methods.resolve_config(name, args.run.family, shared=cli.shared_options(args),
+    args.overrides = configs.parse_overrides(args.set_specs, defaults)
+    args.configs = {name: methods.resolve_config(name, args.run.family, shared=configs.shared_options(args),
                                                  num_tasks=args.run.num_tasks, overrides=args.overrides.get(name))
                     for name in args.run.methods}
     args.out = args.out or os.path.join("runs", f"{args.run.family}-{time.strftime('%Y%m%d-%H%M%S')}")
@@ -213,16 +214,17 @@ def _from_stored(args):
     stored = rundir.read_json(path)
     args.stored = stored
     _count_chosen_tasks(args)
-    args.run = cli.config_from_dict(experiment.RunConfig(), stored["run"], args)
-    args.eval = cli.config_from_dict(continual.EvalConfig(), stored["eval"], args)
+    args.run = configs.config_from_dict(experiment.RunConfig(), stored["run"], args)
+    args.eval = configs.config_from_dict(continual.EvalConfig(), stored["eval"], args)
     # Each method's stored config over its registered default on the family (a field missing from an older run.json
     # keeps the method's default, not its config class's), the options given again, and --set (given again: over
     # the stored configs; open_run_dir refuses any difference).
     defaults = {name: methods.default_config(name, args.run.family) for name in args.run.methods}
-    args.overrides = (cli.parse_overrides(args.set_specs, defaults) if args.set_specs
+    args.overrides = (configs.parse_overrides(args.set_specs, defaults) if args.set_specs
                       else stored.get("overrides", {}))
     args.configs = {name: methods.resolve_config(name, args.run.family, stored=stored["methods"].get(name, {}),
-                                                 shared=cli.shared_options(args), overrides=args.overrides.get(name))
+                                                 shared=configs.shared_options(args),
+                                                 overrides=args.overrides.get(name))
                     for name in args.run.methods}
 
 

@@ -44,7 +44,7 @@ fi
 
 port=${JCOMPS_PORT:-$("$PYTHON" -c 'import socket; s = socket.socket(); s.bind(("localhost", 0)); print(s.getsockname()[1])')}
 cores=$("$PYTHON" -c 'from jcomps import hostdevices; print(hostdevices.cores())')
-# Each process sizes XLA:CPU's thread pool as one process with all N processes' devices would (jcomps.hostdevices).
+# Each process sizes XLA:CPU's thread pool as one process with all N processes' devices would (jcomps.runner.hostdevices).
 export JCOMPS_LOCAL_PROCESSES=$N
 # MetaWorld's stepping workers: each process its share of the cores (the processes are not pinned to cores: XLA
 # spreads a device's program over more than one core, and pinning cost Point Goal's chunk program 9%).

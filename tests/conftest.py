@@ -7,7 +7,7 @@ Matrix products run at full float32 precision: on GPUs JAX's default is TF32 (ab
 fails the tests that compare two computations of the same gradient at float32 tolerances (seen on an H100 with
 jax 0.11.2; with ``highest`` the meta, V-trace and CoMPS tests pass there). On CPU this changes nothing.
 
-JAX sees two CPU host devices (set through ``jcomps.hostdevices`` before JAX starts, with its deadlock-free
+JAX sees two CPU host devices (set through ``jcomps.runner.hostdevices`` before JAX starts, with its deadlock-free
 thread pool), so the runner's sharding of seeds over devices is tested in-process.
 
 The runner's persistent compile cache is off in tests (``JCOMPS_COMPILE_CACHE=none``, unless set otherwise), so
@@ -27,7 +27,7 @@ import importlib.util
 import os
 import pathlib
 
-from jcomps import hostdevices
+from jcomps.runner import hostdevices
 
 os.environ.setdefault("JCOMPS_COMPILE_CACHE", "none")
 os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")  # JAX reads it (its own parsing) when imported below
@@ -94,7 +94,7 @@ def _kill_and_resume(runner, argv: list, out: pathlib.Path, killed, full: pathli
     """Runs ``argv`` into ``out`` with each method in ``killed`` stopped after its first chunk (its checkpoint 1 is
     all there is), resumes the run with ``--resume``, and asserts that every method's raw results equal those of
     the uninterrupted run in ``full``, array for array (wall time apart)."""
-    from jcomps import experiment, results, rundir
+    from jcomps.runner import experiment, results, rundir
 
     args = runner.parse_args(argv + ["--out", str(out)])
     rundir.open_run_dir(str(out), rundir.describe(args.run, args.eval, args.configs), resume=False)

@@ -10,8 +10,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jcomps import acting, continual, envs, methods, networks, ppo
+from jcomps import continual, envs, methods
 from jcomps.methods import maml_tl, pnc
+from jcomps.training import acting, networks, ppo
 
 OBS, ACT, N = 3, 2, 12
 TINY_PPO = ppo.PPOConfig(num_trajectories=2, num_updates=2, minibatch_size=16, hidden_sizes=(8, 8), budget=4)

@@ -5,10 +5,12 @@ import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from jcomps import acting, buffers, envs, ppo
-from jcomps.acting import Trajectory
+from jcomps import envs
+from jcomps.training import acting, buffers, ppo
+from jcomps.training.acting import Trajectory
 
 T, B, OBS, ACT = 3, 4, 2, 1
 

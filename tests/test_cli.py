@@ -8,15 +8,17 @@ import re
 import numpy as np
 import pytest
 
-from jcomps import cli, envs, methods, ppo, rundir
+from jcomps import configs, envs, methods
 from jcomps.methods import ppo_tl
+from jcomps.runner import rundir
+from jcomps.training import ppo
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 
 def test_every_config_field_is_an_option(runner):
     args = runner.parse_args(["--out", "/nonexistent/x"])
-    for name, *_ in cli.flat_fields(ppo_tl.PPOTLConfig):
+    for name, *_ in configs.flat_fields(ppo_tl.PPOTLConfig):
         assert hasattr(args, f"cfg_{name}"), name
 
 
@@ -27,7 +29,7 @@ def test_help_lists_every_option(runner, capsys):
     assert exit_.value.code == 0
     text = capsys.readouterr().out
     for cls in (methods.config_class(m) for m in methods.METHODS):
-        for name, *_ in cli.flat_fields(cls):
+        for name, *_ in configs.flat_fields(cls):
             assert "--" + name.replace("_", "-") in text, name
     # Where a family's calibrated settings replace a default, the help says so.
     assert "ant_dir: 0.001" in " ".join(text.split()), "the MuJoCo families' outer learning rate"

@@ -1,4 +1,4 @@
-"""The persistent compile cache (``jcomps.compile_cache``): a program with host callbacks (our progress hooks)
+"""The persistent compile cache (``jcomps.runner.compile_cache``): a program with host callbacks (our progress hooks)
 compiled in one process is loaded from the cache by the next, and its callbacks still reach the host; ``none``
 turns the cache off; the directory follows ``XDG_CACHE_HOME``. Config values that are not finite are refused."""
 
@@ -12,12 +12,14 @@ import sys
 
 import pytest
 
-from jcomps import compile_cache, continual, meta, ppo
+from jcomps import continual
 from jcomps.methods import comps
+from jcomps.runner import compile_cache
+from jcomps.training import meta, ppo
 
 CHILD = r"""
 import json, sys
-from jcomps import compile_cache
+from jcomps.runner import compile_cache
 directory = compile_cache.configure(sys.argv[1])
 import jax, jax.numpy as jnp
 from jax._src import monitoring

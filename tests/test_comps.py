@@ -7,8 +7,9 @@ import jax
 import numpy as np
 import pytest
 
-from jcomps import continual, envs, meta, methods, ppo
+from jcomps import continual, envs, methods
 from jcomps.methods import comps
+from jcomps.training import meta, ppo
 
 SMALL_PPO = ppo.PPOConfig(num_trajectories=4, num_updates=2, minibatch_size=32, hidden_sizes=(16,), budget=3)
 SMALL_META = meta.MetaConfig(num_meta_steps=2, num_outer_steps=1, inner_trajectories=2, skilled_trajectories=2)
@@ -171,7 +172,7 @@ def test_where_the_meta_step_starts():
 
 
 def test_runs_made_before_meta_start_are_read_as_they_ran():
-    from jcomps import rundir
+    from jcomps.runner import rundir
 
     for name, earlier in (("gmps_ppo", "last"), ("gmps_ppo_is", "last"), ("comps", "fresh")):
         stored = rundir._jsonable(methods.default_config(name, "point_goal"))

@@ -2,11 +2,10 @@
 TensorBoard logs and (offline) Weights & Biases runs."""
 
 import numpy as np
-import pytest
 
 from jcomps import continual
 from jcomps.methods.base import TaskMetrics
-from jcomps.ppo import IterationMetrics
+from jcomps.training.ppo import IterationMetrics
 
 
 def _chunk_metrics(seeds, tasks, budget, nonfinite_at=None):
@@ -83,7 +82,7 @@ def test_console_says_what_compiles_and_evaluates(console, tmp_path):
 
 
 def test_console_shows_the_meta_steps_health(console, tmp_path):
-    from jcomps import meta
+    from jcomps.training import meta
 
     lines = []
     show = console.Console(lines.append, str(tmp_path), interval=0.0)
@@ -164,7 +163,8 @@ def test_console_writes_the_scalars_to_tensorboard(console, tmp_path):
 def test_the_scalars_are_the_metrics_on_their_axes(console):
     metrics = _varied_chunk()
     got = {(tag, axis, step): value for tag, value, axis, step in console.chunk_scalars(metrics, 0, 2)}
-    assert got[("iterations_to_success/mean", "task", 2)] == 2.5 and got[("iterations_to_success/seed1", "task", 2)] == 2
+    assert got[("iterations_to_success/mean", "task", 2)] == 2.5
+    assert got[("iterations_to_success/seed1", "task", 2)] == 2
     # The second seed's lifelong curve runs over its 5 iterations: 3 of task 1, then 2 of task 2.
     ret = metrics.task.per_iteration.mean_return
     assert [got[("lifelong_return/seed1", "iteration/seed1", n)] for n in range(1, 6)] == [

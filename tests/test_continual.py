@@ -6,8 +6,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jcomps import continual, envs, methods, ppo
+from jcomps import continual, envs, methods
 from jcomps.methods import ppo_tl
+from jcomps.training import ppo
 
 SMALL = ppo_tl.PPOTLConfig(ppo=ppo.PPOConfig(num_trajectories=4, num_updates=2, minibatch_size=32,
                                              hidden_sizes=(16,), budget=3))
@@ -76,7 +77,7 @@ def test_a_method_that_never_changes_its_policy_forgets_nothing(family):
     """The learnt tasks' evaluations (right after each task in ``run_chunk``, at the end in ``learnt_tasks``) use
     the same episodes of each task, so a method whose learning leaves the policy as it was scores exactly the same
     both times: zero forgetting, not zero on average."""
-    from jcomps import continual_metrics
+    from jcomps.analysis import continual_metrics
 
     method = methods.make("ppo_tl", family, SMALL)
     state = method.init(jax.random.PRNGKey(0))

@@ -1,10 +1,11 @@
-"""Tests of the continual-RL field's metrics (``jcomps.continual_metrics``): their laws and hand-computed cases."""
+"""Tests of the continual-RL field's metrics (``jcomps.analysis.continual_metrics``): their laws and hand-computed
+cases."""
 
 import numpy as np
 import pytest
 from scipy import stats
 
-from jcomps import continual_metrics as cm
+from jcomps.analysis import continual_metrics as cm
 
 
 def test_a_policy_that_never_changes_has_zero_forgetting():

@@ -1,4 +1,4 @@
-"""Runs spread over several processes (``jcomps.distributed``): options, cluster detection and the progress relay
+"""Runs spread over several processes (``jcomps.runner.distributed``): options, cluster detection and the progress relay
 in-process; then real runs of two local processes with one CPU device each (``scripts/local_cluster.sh``, and the
 SLURM script under a stand-in ``srun``) against one process with two devices: the same per-task results, array
 for array; a process killed after the first checkpoint, the other stopping by itself and both resumed; the exit
@@ -6,7 +6,7 @@ codes of a missing coordinator and of a resume with another process count. Every
 a hang fails the test instead of blocking CI.
 
 Float results depend on XLA:CPU's intra-op thread pool size (``NPROC``): every process here sizes its own
-(``jcomps.hostdevices``), the reference with its 2 devices, the processes of a run as one process with all their
+(``jcomps.runner.hostdevices``), the reference with its 2 devices, the processes of a run as one process with all their
 devices (``JCOMPS_LOCAL_PROCESSES``, which the launcher sets).
 """
 
@@ -24,7 +24,7 @@ import time
 import numpy as np
 import pytest
 
-from jcomps import distributed, hostdevices
+from jcomps.runner import distributed, hostdevices
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCRIPT = os.path.join(ROOT, "experiments", "run_sequence.py")
@@ -162,7 +162,7 @@ def test_old_numpy_checkpoints_restore_into_sharded_states(tmp_path):
     import jax
     from jax.sharding import NamedSharding, PartitionSpec
 
-    from jcomps import checkpoint
+    from jcomps.runner import checkpoint
 
     old = {"states": {"00000": np.arange(8, dtype=np.float32).reshape(2, 4)}, "per_task": {"00000": np.ones(3)},
            "heldout": {"00000": np.ones(2)}, "counters": {"next_chunk": np.int64(1), "seconds": np.float64(2.5)}}
@@ -226,7 +226,7 @@ def test_relay_hands_every_members_progress_to_process_zero(monkeypatch):
 
 _RELAY_CHILD = r"""
 import sys, time
-from jcomps import distributed, hostdevices
+from jcomps.runner import distributed, hostdevices
 hostdevices.configure(1)
 pid, port = int(sys.argv[1]), sys.argv[2]
 distributed.start(distributed.Cluster(2, pid, f"localhost:{port}", coordinator_timeout=60, heartbeat_timeout=30))

@@ -1,4 +1,4 @@
-"""Tests of the experiment runner's host loop (``jcomps.experiment``) and the scripts around it: resume equality,
+"""Tests of the experiment runner's host loop (``jcomps.runner.experiment``) and the scripts around it: resume equality,
 the results schema, checkpoints and the CLI's error paths. The tiny run they share (``full_run``) is in
 conftest.py; the run directory, the members, the programs and the console have their own test files."""
 
@@ -11,7 +11,9 @@ import jax
 import numpy as np
 import pytest
 
-from jcomps import checkpoint, continual, experiment, report, results, rundir
+from jcomps import continual
+from jcomps.analysis import report
+from jcomps.runner import checkpoint, experiment, results, rundir
 
 
 def _raw(out, name):

@@ -11,7 +11,9 @@ import jax
 import numpy as np
 import pytest
 
-from jcomps import envs, methods, report, results
+from jcomps import envs, methods
+from jcomps.analysis import report
+from jcomps.runner import results
 
 DOC = pathlib.Path(__file__).resolve().parents[1] / "docs" / "extending.md"
 

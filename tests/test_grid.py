@@ -10,8 +10,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jcomps import continual, envs, experiment, grid, methods, programs, rundir
+from jcomps import continual, envs, methods
 from jcomps.methods import comps, ppo_tl
+from jcomps.runner import experiment, grid, programs, rundir
 
 TINY = ["--budget", "3", "--num-trajectories", "2", "--num-updates", "1", "--minibatch-size", "16",
         "--heldout-iterations", "1", "--heldout-budget", "3", "--backward-tasks", "2"]

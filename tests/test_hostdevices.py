@@ -6,7 +6,7 @@ import textwrap
 
 import pytest
 
-from jcomps import hostdevices
+from jcomps.runner import hostdevices
 
 
 def test_environment_sets_the_device_count_and_a_pool_larger_than_the_cores():
@@ -42,7 +42,7 @@ def test_batched_initialisation_on_two_host_devices_finishes():
     this hung every time on a 2-core machine (jax 0.10.2, 5 of 5 tries); the subprocess has a timeout so that a
     regression fails instead of hanging."""
     child = textwrap.dedent("""
-        from jcomps import hostdevices
+        from jcomps.runner import hostdevices
         hostdevices.configure(2)
         import jax, jax.numpy as jnp
         from jax.sharding import NamedSharding, PartitionSpec as P

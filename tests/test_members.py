@@ -1,10 +1,11 @@
-"""Tests of a program's members (``jcomps.members``): how seeds and grid points fill the devices, and their random
-streams."""
+"""Tests of a program's members (``jcomps.runner.members``): how seeds and grid points fill the devices, and their
+random streams."""
 
 import jax
 import numpy as np
 
-from jcomps import continual, grid, methods, members
+from jcomps import continual, methods
+from jcomps.runner import grid, members
 
 
 def test_seeds_fill_the_devices():

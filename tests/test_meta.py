@@ -10,9 +10,10 @@ import numpy as np
 import optax
 import pytest
 
-from jcomps import buffers, meta, networks, progress
-from jcomps.acting import Trajectory
+from jcomps import progress
 from jcomps.numerics import masked_mean
+from jcomps.training import buffers, meta, networks
+from jcomps.training.acting import Trajectory
 
 T, OBS, ACT, SLOTS, SKILLED, OFF = 4, 2, 1, 3, 3, 4
 CONFIG = meta.MetaConfig(inner_trajectories=3, skilled_trajectories=2, inner_learning_rate=0.5, num_meta_steps=20,

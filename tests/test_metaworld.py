@@ -12,9 +12,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jcomps import acting, envs, host_acting, methods, networks, ppo
+from jcomps import envs, methods
+from jcomps.envs import host_acting
 from jcomps.envs import metaworld as mw
 from jcomps.envs import metaworld_host as host
+from jcomps.training import acting, networks, ppo
 
 
 @pytest.fixture(scope="module")

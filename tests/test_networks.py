@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import stats
 
-from jcomps import networks
+from jcomps.training import networks
 
 
 def _params(seed=0, obs_size=3, action_size=2, hidden=(8,), init_std=0.5):

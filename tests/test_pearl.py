@@ -11,8 +11,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jcomps import acting, buffers, continual, envs, methods
+from jcomps import continual, envs, methods
 from jcomps.methods import pearl
+from jcomps.training import acting, buffers
 
 TINY = pearl.PEARLConfig(num_trajectories=2, budget=1, num_updates=1, minibatch_size=8, meta_batch=2, tau=0.05,
                          context_size=4, hidden_sizes=(8, 8), encoder_hidden_sizes=(8,), max_tasks=3,
@@ -316,7 +317,7 @@ def test_the_kl_weighs_per_task_whatever_the_meta_batch(family):
                                                         jnp.ones((M, 4)), k[4])
         return float(total), float(q_loss), float(kl)
 
-    (one, q1, kl1), (three, q3, kl3) = loss(1), loss(3)
+    (one, q1, kl1), (three, q3, _kl3) = loss(1), loss(3)
     assert q1 == q3 == 0.0 and kl1 > 0  # no valid row: the KL term alone
     assert one == pytest.approx(2.0 * kl1, rel=1e-6) and three == pytest.approx(one, rel=1e-6)
 

@@ -2,15 +2,16 @@
 with equal weight, and re-expressing the KB in new statistics keeps its function on the states of earlier tasks;
 on MetaWorld, after Push and then Hammer, the KB sees both tasks' observations inside the clip."""
 
-import dataclasses
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jcomps import acting, envs, host_acting, networks, ppo
+from jcomps import envs
+from jcomps.envs import host_acting
 from jcomps.methods import pnc
+from jcomps.training import acting, networks, ppo
 
 TINY_PPO = ppo.PPOConfig(num_trajectories=2, num_updates=1, minibatch_size=16, hidden_sizes=(8, 8), budget=2)
 

@@ -8,7 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jcomps import acting, envs, networks, ppo
+from jcomps import envs
+from jcomps.training import acting, networks, ppo
 
 SMALL = ppo.PPOConfig(num_trajectories=4, num_updates=4, minibatch_size=64, hidden_sizes=(16,), budget=6)
 
@@ -117,7 +118,7 @@ def test_bad_config_names_the_field(field, value):
 
 def test_rollout_shapes_and_truncation_bootstrap_obs(point):
     policy = ppo.init_params(SMALL, point, jax.random.PRNGKey(0)).policy
-    from jcomps import acting
+    from jcomps.training import acting
 
     traj = jax.jit(lambda r: acting.rollout(point, policy, envs.task_at(point, 0), r, 3))(jax.random.PRNGKey(0))
     T = point.max_steps

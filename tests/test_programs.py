@@ -1,11 +1,12 @@
-"""Tests of the compiled programs' machinery (``jcomps.programs``)."""
+"""Tests of the compiled programs' machinery (``jcomps.runner.programs``)."""
 
 import time
 
 import jax
 import numpy as np
 
-from jcomps import continual, members, methods, programs
+from jcomps import continual, methods
+from jcomps.runner import members, programs
 
 
 def test_a_long_compile_keeps_saying_so():

@@ -8,7 +8,8 @@ import zlib
 import numpy as np
 import pytest
 
-from jcomps import envs, experiment, programs, rundir
+from jcomps import envs
+from jcomps.runner import experiment, programs, rundir
 
 TINY = ["--family", "cheetah_vel", "--methods", "ppo_tl", "--num-tasks", "3", "--seeds", "2", "--chunk-tasks", "1",
         "--budget", "2", "--num-trajectories", "2", "--hidden-sizes", "8", "--num-updates", "1",

@@ -1,5 +1,5 @@
-"""Tests of the report of a run directory (``jcomps.report``): ``results.json``, the tables and the plots of a tiny
-hand-made run (numpy arrays written as ``raw/<entry>.npz``; nothing is trained or compiled)."""
+"""Tests of the report of a run directory (``jcomps.analysis.report``): ``results.json``, the tables and the plots of a
+tiny hand-made run (numpy arrays written as ``raw/<entry>.npz``; nothing is trained or compiled)."""
 
 import json
 import os
@@ -7,8 +7,8 @@ import os
 import numpy as np
 import pytest
 
-from jcomps import report, statistics
-from jcomps.checkpoint import RunError
+from jcomps.analysis import report, statistics
+from jcomps.runner.checkpoint import RunError
 
 S, N, BUDGET, H = 2, 2, 3, 2  # seeds, tasks, RL-step budget, held-out tasks
 AFTER = np.array([0, 1, 2])  # tasks learnt before each held-out measurement

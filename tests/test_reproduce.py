@@ -1,4 +1,4 @@
-"""Tests of the paper's experiments reproduced (``jcomps.reproduction``, ``jcomps.paper``,
+"""Tests of the paper's experiments reproduced (``jcomps.analysis.reproduction``, ``jcomps.analysis.paper``,
 ``experiments/reproduce.py``): protocols, the tables beside the paper's, and a tiny study run, resumed and reported
 partially, each method a ``run_sequence.py`` process of its own."""
 
@@ -9,8 +9,8 @@ import shutil
 import numpy as np
 import pytest
 
-from jcomps import paper, reproduction, results, statistics
-
+from jcomps.analysis import paper, reproduction, statistics
+from jcomps.runner import results
 
 # --- protocols ---------------------------------------------------------------------------------------------------
 

@@ -11,9 +11,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import given, strategies as st
+from hypothesis import given
+from hypothesis import strategies as st
 
-from jcomps import acting, progress, rl_loop
+from jcomps import progress
+from jcomps.training import acting, rl_loop
 
 BUDGET = 6
 THRESHOLD = 0.9

@@ -1,6 +1,6 @@
-"""Tests of the run directory (``jcomps.rundir``): what ``run.json`` holds, a resume compared with it (differences
-named, fields added since the run was made filled in or refused), and the runner's exits on a directory it cannot
-use."""
+"""Tests of the run directory (``jcomps.runner.rundir``): what ``run.json`` holds, a resume compared with it
+(differences named, fields added since the run was made filled in or refused), and the runner's exits on a directory it
+cannot use."""
 
 import dataclasses
 import json
@@ -8,8 +8,9 @@ import shutil
 
 import pytest
 
-from jcomps import continual, experiment, methods, rundir
-from jcomps.checkpoint import RunError
+from jcomps import continual, methods
+from jcomps.runner import experiment, rundir
+from jcomps.runner.checkpoint import RunError
 
 
 def test_differences_name_every_leaf_that_differs():

@@ -1,4 +1,5 @@
-"""Tests of the statistics of a run's results (``jcomps.statistics``): laws, invariants and hand-computed cases."""
+"""Tests of the statistics of a run's results (``jcomps.analysis.statistics``): laws, invariants and hand-computed
+cases."""
 
 import subprocess
 import sys
@@ -7,13 +8,14 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from jcomps import statistics
+from jcomps.analysis import statistics
 
 
 def test_the_module_is_pure():
     """Importing the statistics pulls in no plotting, no runner and no JAX."""
-    code = ("import sys, jcomps.statistics; "
-            "print(sorted(m for m in ('matplotlib', 'jax', 'jcomps.experiment', 'jcomps.report', 'jcomps.plots') "
+    code = ("import sys, jcomps.analysis.statistics; "
+            "print(sorted(m for m in ('matplotlib', 'jax', 'jcomps.runner.experiment', 'jcomps.analysis.report', "
+            "'jcomps.analysis.plots') "
             "if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"

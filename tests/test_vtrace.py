@@ -5,11 +5,12 @@ import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
-from hypothesis import given, strategies as st
+from hypothesis import given
+from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from jcomps import ppo
-from jcomps.vtrace import discounted_returns, vtrace
+from jcomps.training import ppo
+from jcomps.training.vtrace import discounted_returns, vtrace
 
 
 def _inputs(seed, T=6, B=3, scale=1.0):

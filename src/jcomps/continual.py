@@ -16,11 +16,13 @@ from typing import Any, NamedTuple, Optional
 import jax
 import jax.numpy as jnp
 
-from jcomps import acting, envs, ppo, progress, rl_loop
-from jcomps.numerics import check_field, check_finite_fields, concrete_max
-from jcomps.progress import ProgressFn, with_fields
+from jcomps import envs, progress
 from jcomps.methods import base
 from jcomps.methods.base import Method, TaskMetrics
+from jcomps.numerics import check_field, check_finite_fields, concrete_max
+from jcomps.progress import ProgressFn, with_fields
+from jcomps.training import acting, ppo, rl_loop
+
 
 def check_capacity(method: Method, num_tasks: int, start=0) -> None:
     """Raises ValueError if learning ``num_tasks`` tasks from task index ``start`` would pass the method's
@@ -67,7 +69,7 @@ def init_seeds(method: Method, rngs: jax.Array, hparams: Optional[dict] = None):
     LAPACK kernel splitting the batch over XLA:CPU's intra-op thread pool and waiting for the parts on a pool
     thread; several at once can occupy every pool thread and wait forever (seen with jax 0.10.2 on 2 host
     devices: gdb shows both "tf_XLAEigen" threads in ParallelBatchMap under QrFactorization; see
-    ``jcomps.hostdevices``). Unbatched, the kernel runs inline; the values are the same.
+    ``jcomps.runner.hostdevices``). Unbatched, the kernel runs inline; the values are the same.
 
     With ``hparams`` (a dict of arrays with a leading axis of S, a hyperparameter grid's traced values per
     member), ``method`` is instead a function of one member's dict of scalars that makes its Method, called
@@ -272,7 +274,7 @@ def run_chunk(method: Method, eval_config: EvalConfig, state, sequence, start, c
     batched), so a sequence of any length runs through one compiled chunk program. ``eval_key`` seeds the
     evaluation rollouts only: the method's own random stream is the same with or without evaluation, and with
     any chunking. Returns (state, ChunkMetrics). (The runner runs the two parts as programs of their own, one
-    task at a time: ``jcomps.experiment.MethodProgram``.)
+    task at a time: ``jcomps.runner.experiment.MethodProgram``.)
     """
     num_tasks = jax.tree.leaves(sequence)[0].shape[0]
     check_capacity(method, num_tasks)

@@ -96,7 +96,7 @@ class Family:
       host_rollout: for a family simulated on the host (MetaWorld), whole rollouts run there:
         ``host_rollout(kind, policy, task, noise f32[T, B, A], active bool[]) -> (obs f32[T, B, O], action
         f32[T, B, A], log_prob f32[T, B], reward f32[T, B], success f32[T, B], last_obs f32[B, O])`` with the
-        policy evaluated by its NumPy twin ``kind`` (``jcomps.host_acting``); where ``active`` is False the result
+        policy evaluated by its NumPy twin ``kind`` (``jcomps.envs.host_acting``); where ``active`` is False the result
         is discarded (``acting.only_if``), so the host may skip it and return zeros. ``acting.rollout`` uses it
         when the ``act`` has a twin, and steps through ``step`` otherwise. None: rollouts always step through
         ``step``.

@@ -31,8 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jcomps import host_acting
-from jcomps.envs import base
+from jcomps.envs import base, host_acting
 from jcomps.envs import metaworld_host as host
 
 SUCCESS_THRESHOLD = 0.2

@@ -17,7 +17,7 @@ Python attributes, such as the goal and the reward's normalisers, are fixed by t
 ``mj_setState`` + MetaWorld's step + ``mj_getState``.
 
 ``rollout(kind, policies, group, episode, env, variant, noise)`` runs whole episodes here, T_max steps, with
-the policy evaluated by its NumPy twin (``jcomps.host_acting``): the family's ``host_rollout``, one round trip
+the policy evaluated by its NumPy twin (``jcomps.envs.host_acting``): the family's ``host_rollout``, one round trip
 per rollout instead of one per step.
 
 ``Pool`` spreads a batch of steps or of episodes over worker processes, so stepping uses every core; being pure,
@@ -178,7 +178,7 @@ def rollout(kind: str, policies: list, group, episode, env, variant, noise):
     observation after the last step), action f32[N, T, A] (before the clip to [-1, 1] that the env applies),
     log_prob f32[N, T], reward f32[N, T], success f32[N, T]).
     """
-    from jcomps import host_acting
+    from jcomps.envs import host_acting
 
     env, variant, group = (np.asarray(x).reshape(-1) for x in (env, variant, group))
     episode = np.asarray(episode).reshape(-1)

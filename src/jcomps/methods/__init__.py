@@ -36,12 +36,13 @@ import copy
 import dataclasses
 from typing import Any, Callable, Mapping, NamedTuple, Optional
 
-from jcomps import cli, envs, meta, ppo
+from jcomps import configs, envs
 from jcomps.envs.base import Family
 from jcomps.methods import base, comps, maml_tl, pearl, pnc, ppo_tl
 from jcomps.methods.base import Method, TaskMetrics, collection, task_slots
 from jcomps.progress import ProgressFn
 from jcomps.registry import Registry
+from jcomps.training import meta, ppo
 
 
 class Registered(NamedTuple):
@@ -186,20 +187,20 @@ def resolve_config(name: str, family: Family | str, *, stored: Optional[Mapping]
     4. ``shared``: {field: value} of the options every method shares (``--learning-rate``), set wherever the field
        occurs in the config, nested parts included;
     5. ``num_tasks``: a config with task slots (``task_slots``) gets one per task, unless layer 3 or 4 gave them;
-    6. ``overrides``: {"part.field": value} of this method alone (``--set``; ``cli.parse_overrides``).
+    6. ``overrides``: {"part.field": value} of this method alone (``--set``; ``configs.parse_overrides``).
 
-    A hyperparameter grid's points are the last layer (``jcomps.grid.points`` over this config). Every layer is
+    A hyperparameter grid's points are the last layer (``jcomps.runner.grid.points`` over this config). Every layer is
     validated by the config classes' checks (ValueError naming the field); ``overrides``' errors name ``--set``.
     """
     config = default_config(name, family)
     if stored:
-        config = cli.config_from_dict(config, with_earlier_values(stored))
+        config = configs.config_from_dict(config, with_earlier_values(stored))
     if shared:
-        config = cli.with_shared(config, shared)
+        config = configs.with_shared(config, shared)
     given = set(stored or ()) | set(shared or ())
     if num_tasks is not None and task_slots(config) is not None and "max_tasks" not in given:
         config = dataclasses.replace(config, max_tasks=num_tasks)
-    return cli.apply_overrides({name: config}, {name: dict(overrides)} if overrides else {})[name]
+    return configs.apply_overrides({name: config}, {name: dict(overrides)} if overrides else {})[name]
 
 
 def make(name: str, family: Family, config=None, progress_fn: Optional[ProgressFn] = None) -> Method:

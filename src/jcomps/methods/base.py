@@ -19,9 +19,9 @@ from typing import Any, Callable, NamedTuple, Optional
 
 import jax
 
-from jcomps import acting
-from jcomps.meta import MetaMetrics
-from jcomps.rl_loop import IterationMetrics
+from jcomps.training import acting
+from jcomps.training.meta import MetaMetrics
+from jcomps.training.rl_loop import IterationMetrics
 
 
 class TaskMetrics(NamedTuple):
@@ -31,7 +31,7 @@ class TaskMetrics(NamedTuple):
       iterations: i32[], iterations-to-success (the budget if the threshold was never reached).
       solved: bool[], whether the success threshold was reached within the budget.
       per_iteration: IterationMetrics with fields of length ``budget``, masked by ``per_iteration.valid``.
-      meta: the health of the meta phase that followed the task (``jcomps.meta.MetaMetrics``) for the methods
+      meta: the health of the meta phase that followed the task (``jcomps.training.meta.MetaMetrics``) for the methods
         with CoMPS's meta step; None for the others.
     """
 
@@ -57,7 +57,7 @@ class Method(NamedTuple):
         count (the budget's iterations) already does.
       env_steps_before_task: env steps every task costs before its first iteration, solved or not (PEARL's
         collection with z from the prior, oyster's ``num_initial_steps``); samples-to-success include them.
-      actor: how the method's policies act in rollouts (``jcomps.acting.Actor``): the Gaussian MLP policy's
+      actor: how the method's policies act in rollouts (``jcomps.training.acting.Actor``): the Gaussian MLP policy's
         (``acting.GAUSSIAN``) for the PPO-based methods, whose evaluated policy ``state.params.policy`` is one; PEARL
         brings its tanh-Gaussian's.
       policy_for: ``(state, slot i32[], task, rng) -> policy``, the policy that acts on ``task``, the task learnt
@@ -88,7 +88,7 @@ def collection(config) -> Any:
     configs derive from ``ppo.PPOBased``), the config itself for PEARL."""
     if not callable(getattr(type(config), "collection", None)):
         raise TypeError(f"{type(config).__name__} has no collection(): a method config says where its episodes per "
-                        "iteration and budget are (derive from jcomps.ppo.PPOBased for a PPO part named ppo)")
+                        "iteration and budget are (derive from jcomps.training.ppo.PPOBased for a PPO part named ppo)")
     return config.collection()
 
 

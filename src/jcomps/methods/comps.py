@@ -18,12 +18,11 @@ from typing import Any, NamedTuple, Optional
 import jax
 import jax.numpy as jnp
 
-from jcomps import buffers, meta, networks, ppo
-from jcomps.numerics import check_field, check_finite_fields, concrete_max
-from jcomps.progress import ProgressFn, with_fields
 from jcomps.envs.base import Family
 from jcomps.methods.base import Method, TaskMetrics
-
+from jcomps.numerics import check_field, check_finite_fields, concrete_max
+from jcomps.progress import ProgressFn, with_fields
+from jcomps.training import buffers, meta, networks, ppo
 
 META_STARTS = ("fresh", "last")
 WARM_START_STDS = ("learnt", "meta")

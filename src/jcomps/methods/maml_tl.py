@@ -33,13 +33,19 @@ from typing import Any, ClassVar, NamedTuple, Optional
 import jax
 import jax.numpy as jnp
 
-from jcomps import acting, networks, ppo, rl_loop
 from jcomps.envs.base import Family
 from jcomps.methods.base import Method, TaskMetrics
-from jcomps.numerics import (all_finite, check_field, check_finite_fields, keep_if_finite, masked_mean,
-                             masked_standardize)
+from jcomps.numerics import (
+    all_finite,
+    check_field,
+    check_finite_fields,
+    keep_if_finite,
+    masked_mean,
+    masked_standardize,
+)
 from jcomps.progress import ProgressFn, with_fields
-from jcomps.rl_loop import UpdateTerms
+from jcomps.training import acting, networks, ppo, rl_loop
+from jcomps.training.rl_loop import UpdateTerms
 
 
 @dataclasses.dataclass(frozen=True)

@@ -54,12 +54,19 @@ from brax.training import types as brax_types
 from brax.training.agents.sac import losses as sac_losses
 from brax.training.agents.sac import networks as sac_networks
 
-from jcomps import acting, buffers, networks, rl_loop
 from jcomps.envs.base import Family
 from jcomps.methods.base import Method, TaskMetrics
-from jcomps.numerics import (all_finite, check_field, check_finite_fields, keep_if_finite, masked_mean,
-                             masked_weights, optimizer_step)
+from jcomps.numerics import (
+    all_finite,
+    check_field,
+    check_finite_fields,
+    keep_if_finite,
+    masked_mean,
+    masked_weights,
+    optimizer_step,
+)
 from jcomps.progress import ProgressFn, with_fields
+from jcomps.training import acting, buffers, networks, rl_loop
 
 
 @dataclasses.dataclass(frozen=True)

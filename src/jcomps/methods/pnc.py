@@ -37,12 +37,12 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from jcomps import acting, networks, ppo, progress
+from jcomps import progress
 from jcomps.envs.base import Family
 from jcomps.methods.base import Method, TaskMetrics
 from jcomps.numerics import check_field, check_finite_fields, guarded_update, masked_mean, masked_weights
 from jcomps.progress import ProgressFn, with_fields
-
+from jcomps.training import acting, networks, ppo
 
 KB_STATISTICS = ("tasks", "first_task")
 """The choices of ``PNCConfig.kb_statistics``."""
@@ -148,7 +148,7 @@ def column_dist(policy: dict, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
 
 
 COLUMN = networks.PolicyFns(column_dist, host_kind="pnc_column")
-"""How an active column (``with_kb``) is applied; its NumPy twin is ``jcomps.host_acting.pnc_column``."""
+"""How an active column (``with_kb``) is applied; its NumPy twin is ``jcomps.envs.host_acting.pnc_column``."""
 
 
 class PNCState(NamedTuple):
@@ -363,7 +363,8 @@ def make(family: Family, config: PNCConfig = PNCConfig(), progress_fn: Optional[
         kb = state.params.policy
         if config.reset_active:
             # The initial parameters, not a fresh draw: an orthogonal draw here would run batched QR kernels inside
-            # the vmapped program, which can deadlock XLA:CPU's thread pool (jcomps.hostdevices; it hung a study).
+            # the vmapped program, which can deadlock XLA:CPU's thread pool (jcomps.runner.hostdevices; it hung a
+            # study).
             active = {**state.fresh.policy, "obs_norm": state.active["obs_norm"]}
             value = state.fresh.value
         else:

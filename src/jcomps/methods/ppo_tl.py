@@ -9,10 +9,10 @@ from typing import Any, NamedTuple, Optional
 
 import jax
 
-from jcomps import networks, ppo
 from jcomps.envs.base import Family
-from jcomps.progress import ProgressFn, with_fields
 from jcomps.methods.base import Method, TaskMetrics
+from jcomps.progress import ProgressFn, with_fields
+from jcomps.training import networks, ppo
 
 
 @dataclasses.dataclass(frozen=True)
@@ -48,7 +48,7 @@ def make(family: Family, config: PPOTLConfig = PPOTLConfig(), progress_fn: Optio
          scratch: bool = False) -> Method:
     """PPO+TL; with ``scratch``, the method ``ppo``: every task starts from the parameters ``init`` drew (kept in
     the state) and a fresh Adam state. Not a new draw per task: an orthogonal draw inside the vmapped program
-    runs batched QR kernels, which can deadlock XLA:CPU's thread pool (``jcomps.hostdevices``; it hung a PNC
+    runs batched QR kernels, which can deadlock XLA:CPU's thread pool (``jcomps.runner.hostdevices``; it hung a PNC
     study), and tasks learnt from one initialisation are as independent of each other as from several."""
     optimizer = ppo.make_optimizer(config.ppo)
 

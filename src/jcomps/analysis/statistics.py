@@ -1,7 +1,8 @@
 """The statistics of a run's results, as pure functions of numpy arrays: means with standard errors, backward
 transfer, the significance of a difference between methods (t-test and bootstrap), the interquartile mean with its
 stratified-bootstrap interval, and the arithmetic behind the continual-RL field's summaries (built on
-``jcomps.continual_metrics``). ``jcomps.report`` applies them to a run directory and writes what they return.
+``jcomps.analysis.continual_metrics``). ``jcomps.analysis.report`` applies them to a run directory and writes what they
+return.
 
 Arrays are seeds × tasks ``[S, N]`` (task = position in the sequence) unless said otherwise; per-iteration arrays
 are ``[S, N, budget]`` masked by a ``valid`` of the same shape. NaN marks what is undefined.
@@ -14,7 +15,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from jcomps import continual_metrics as cm
+from jcomps.analysis import continual_metrics as cm
 
 BOOTSTRAP_SAMPLES = 30_000
 """Resamples of the bootstrap significance test (``significance``)."""

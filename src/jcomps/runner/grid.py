@@ -2,7 +2,7 @@
 
 ``--grid learning_rate=0.01,0.001 --grid init_std=0.3,0.5`` runs every method of a run at every point of the
 product of the values (in ``--grid`` order) × every seed. Grid fields are the flat option names of the method
-configs (``jcomps.cli.flat_fields``; a name shared by nested configs, like ``discount`` in ``ppo`` and ``meta``,
+configs (``jcomps.configs.flat_fields``; a name shared by nested configs, like ``discount`` in ``ppo`` and ``meta``,
 sets all of them, as the plain option does). A method runs the axes it has; the others do not apply to it.
 
 How a grid is compiled (``programs``): an axis whose field may hold a traced scalar in every config class of the
@@ -26,7 +26,7 @@ import math
 import typing
 from typing import Any, Optional
 
-from jcomps import cli
+from jcomps import configs
 
 
 @dataclasses.dataclass(frozen=True)
@@ -87,7 +87,7 @@ def field_types(classes) -> dict:
     """Flat field name -> type over config classes ``classes`` (the first class that has it decides)."""
     out = {}
     for cls in classes:
-        for name, tp, *_ in cli.flat_fields(cls):
+        for name, tp, *_ in configs.flat_fields(cls):
             out.setdefault(name, tp)
     return out
 
@@ -124,7 +124,7 @@ def _parse_value(field: str, tp, text: str):
     if not text.strip():
         raise ValueError(f"--grid {field}: an empty value in the list")
     try:
-        return cli.parse_value(tp, text)
+        return configs.parse_value(tp, text)
     except ValueError as err:
         raise ValueError(f"--grid {field}: {err}") from None
 
@@ -214,7 +214,7 @@ def points(method: str, base, grid: Grid) -> list:
 
     Raises ValueError naming the field and value the config refuses.
     """
-    fields = {name for name, *_ in cli.flat_fields(type(base))}
+    fields = {name for name, *_ in configs.flat_fields(type(base))}
     for axis in axes_of(fields, grid):  # one value at a time first, so the error names it
         for v in axis.values:
             try:
@@ -235,7 +235,7 @@ def points(method: str, base, grid: Grid) -> list:
 
 def programs(method: str, base, grid: Grid) -> list:
     """The compiled programs of ``method`` (see the module docstring), each with its points in product order."""
-    fields = {name for name, *_ in cli.flat_fields(type(base))}
+    fields = {name for name, *_ in configs.flat_fields(type(base))}
     axes = axes_of(fields, grid)
     traceable = traced_fields(type(base))
     traced = tuple(a.field for a in axes if a.field in traceable and len(a.values) > 1)
@@ -259,7 +259,7 @@ def entries(description: dict, classes: dict) -> list:
     grid = from_json(description["grid"], classes)
     out = []
     for m in description["run"]["methods"]:
-        fields = {name for name, *_ in cli.flat_fields(classes[m])}
+        fields = {name for name, *_ in configs.flat_fields(classes[m])}
         for values in point_values(fields, grid):
             out.append((m, key(m, values), dict(values)))
     return out

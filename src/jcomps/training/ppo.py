@@ -21,12 +21,18 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from jcomps import acting, networks, rl_loop
 from jcomps.envs.base import Family
-from jcomps.numerics import (check_field, check_finite_fields, guarded_update, masked_explained_variance, masked_mean,
-                             masked_standardize)
+from jcomps.numerics import (
+    check_field,
+    check_finite_fields,
+    guarded_update,
+    masked_explained_variance,
+    masked_mean,
+    masked_standardize,
+)
 from jcomps.progress import ProgressFn
-from jcomps.rl_loop import IterationMetrics, UpdateTerms
+from jcomps.training import acting, networks, rl_loop
+from jcomps.training.rl_loop import IterationMetrics, UpdateTerms
 
 
 @dataclasses.dataclass(frozen=True)

@@ -78,8 +78,8 @@ def vtrace(values, bootstrap_value, rewards, discounts, log_rhos, *, rho_bar: fl
 def discounted_returns(rewards, discounts, bootstrap_value):
     """Bootstrapped discounted returns G_t = r_t + γ_t G_{t+1}, G_T = ``bootstrap_value`` (f32[T, B] from
     time-major ``rewards`` and per-step ``discounts`` f32[T, B], 0 at a termination). On-policy V-trace with λ = 1
-    gives the same targets whatever the values (``vtrace(...).vs``; tested); GAE (``jcomps.ppo.gae``) is on-policy
-    V-trace with traces c = λ."""
+    gives the same targets whatever the values (``vtrace(...).vs``; tested); GAE (``jcomps.training.ppo.gae``) is
+    on-policy V-trace with traces c = λ."""
     chex.assert_rank([rewards, discounts, bootstrap_value], [2, 2, 1])
 
     def body(acc, xs):

@@ -18,11 +18,13 @@ from typing import TYPE_CHECKING, Optional
 
 import jax
 
-from jcomps import continual, distributed, grid as grids, methods
-from jcomps.checkpoint import RunError
+from jcomps import continual, methods
+from jcomps.runner import distributed
+from jcomps.runner import grid as grids
+from jcomps.runner.checkpoint import RunError
 
 if TYPE_CHECKING:
-    from jcomps.experiment import RunConfig
+    from jcomps.runner.experiment import RunConfig
 
 
 def write_json(path: str, data) -> None:
@@ -70,8 +72,8 @@ def describe(run: RunConfig, eval_config: continual.EvalConfig, method_configs: 
              overrides: Optional[dict] = None) -> dict:
     """The JSON description of a run (``run.json``), with the device count over every process (float rounding
     depends on it, so a resume must use the same count: ``experiments/run_sequence.py --resume`` takes it from
-    here) and the process count (``jcomps.distributed``: each process restores its own shards). With a
-    hyperparameter grid, ``grid`` holds its axes in order (``jcomps.grid.to_json``); with per-method overrides
+    here) and the process count (``jcomps.runner.distributed``: each process restores its own shards). With a
+    hyperparameter grid, ``grid`` holds its axes in order (``jcomps.runner.grid.to_json``); with per-method overrides
     (``--set``), ``overrides`` holds them ({method: {"field.path": value}}, already part of the methods' configs);
     without either there is no such key."""
     out = {"run": _jsonable(run), "eval": _jsonable(eval_config),
@@ -157,7 +159,7 @@ def _check_resumable(out: str, run_json: str, description: dict) -> None:
             default = _jsonable(methods.default_config(name, description["run"]["family"]))
             filled += _fill_added_fields(stored["methods"][name], config, default, f"methods.{name}.")
     if isinstance(stored.get("run"), dict) and isinstance(description.get("run"), dict):
-        from jcomps import experiment  # experiment imports this module
+        from jcomps.runner import experiment  # experiment imports this module
 
         filled += _fill_added_fields(stored["run"], description["run"], _jsonable(experiment.RunConfig()), "run.")
     if isinstance(stored.get("eval"), dict) and isinstance(description.get("eval"), dict):
@@ -181,8 +183,9 @@ def _check_resumable(out: str, run_json: str, description: dict) -> None:
 
 def open_run_dir(out: str, description: dict, resume: bool) -> None:
     """Creates ``out`` for a new run (its ``run.json``: ``description``), or checks that it holds this very run when
-    resuming; raises ``RunError`` saying what to do when it cannot. With several processes (``jcomps.distributed``)
-    every process checks, then process 0 writes while the others wait (they read the directory next)."""
+    resuming; raises ``RunError`` saying what to do when it cannot. With several processes
+    (``jcomps.runner.distributed``) every process checks, then process 0 writes while the others wait (they read the
+    directory next)."""
     run_json = os.path.join(out, "run.json")
     if resume:
         _check_resumable(out, run_json, description)

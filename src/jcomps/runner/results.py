@@ -1,5 +1,6 @@
 """The raw results of a finished results entry (a method, or a method at a grid point): one typed structure,
-written by the runner (``jcomps.experiment``) and read back by the report (``jcomps.report``), here only.
+written by the runner (``jcomps.runner.experiment``) and read back by the report (``jcomps.analysis.report``), here
+only.
 
 On disk, ``raw/<entry>.npz`` holds one array per leaf, named by its path in ``RawResults``
 (``task.per_iteration.mean_return``, ``heldout.iterations``, ...). Files written before this structure existed
@@ -15,9 +16,9 @@ from typing import NamedTuple, Optional
 import jax
 import numpy as np
 
-from jcomps.checkpoint import RunError
 from jcomps.continual import Evaluation, HeldoutMetrics
 from jcomps.methods.base import TaskMetrics
+from jcomps.runner.checkpoint import RunError
 
 
 class RawResults(NamedTuple):

@@ -3,7 +3,7 @@
 Per method there are four programs (``PARTS``): ``init``, ``learn`` (one task at a position of the sequence; the
 host loops over positions, so one program serves every task), ``evaluate_task`` (backward transfer and the learnt
 task, after each task) and ``heldout`` (held-out meta-test and the learnt tasks, after each chunk). Each is a
-``vmap`` over the members of a device and a ``shard_map`` over devices (``jcomps.members``: the member axis);
+``vmap`` over the members of a device and a ``shard_map`` over devices (``jcomps.runner.members``: the member axis);
 traced hyperparameters enter as one scalar per member, and the method is made inside the traced function from a
 config holding it. Programs compile ahead of time (``MethodProgram.compile``, timed, with a heartbeat while XLA
 works) and live in a ``Programs`` cache owned by the caller, never in a module-level registry.
@@ -21,8 +21,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import PartitionSpec as P
 
-from jcomps import compile_cache, continual, distributed, envs, grid as grids, methods, progress
-
+from jcomps import continual, envs, methods, progress
+from jcomps.runner import compile_cache, distributed
+from jcomps.runner import grid as grids
 
 HEARTBEAT_SECONDS = 20.0
 """How often a compile that is still running says so (``MethodProgram.compile``'s ``waiting``)."""
@@ -63,7 +64,7 @@ class CompileTimes(NamedTuple):
     trace_seconds: float
     """Of which Python tracing (never cached)."""
     cached: bool
-    """Whether XLA's part came from the persistent compile cache (``jcomps.compile_cache``): then in about a
+    """Whether XLA's part came from the persistent compile cache (``jcomps.runner.compile_cache``): then in about a
     second."""
 
 
@@ -200,7 +201,7 @@ class MethodProgram:
 
     def put(self, tree):
         """Places host arrays with a leading member axis on the devices, split along that axis (with several
-        processes, each process its own members: ``jcomps.distributed.put``)."""
+        processes, each process its own members: ``jcomps.runner.distributed.put``)."""
         return distributed.put(tree, self.sharding)
 
 

@@ -145,7 +145,7 @@ class PolicyFns(NamedTuple):
 
     Attributes:
       dist: ``(policy, obs f32[..., obs_size]) -> (mean f32[..., A], log_std f32[A])`` at raw observations.
-      host_kind: the name of ``act``'s NumPy twin (``jcomps.host_acting.TWINS``), with which a family simulated on
+      host_kind: the name of ``act``'s NumPy twin (``jcomps.envs.host_acting.TWINS``), with which a family simulated on
         the host runs whole rollouts there; None: no twin (such a family is stepped through its ``step``).
     """
 
@@ -171,7 +171,8 @@ class PolicyFns(NamedTuple):
 
 
 GAUSSIAN = PolicyFns(policy_dist, host_kind="gaussian")
-"""The Gaussian MLP policy of ``init_actor_critic`` (``policy_dist``); its twin is ``jcomps.host_acting.gaussian``."""
+"""The Gaussian MLP policy of ``init_actor_critic`` (``policy_dist``); its twin is
+``jcomps.envs.host_acting.gaussian``."""
 
 
 def value_apply(value: list, obs: jax.Array) -> jax.Array:

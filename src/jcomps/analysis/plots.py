@@ -15,7 +15,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
-from jcomps.statistics import FT_REFERENCE, mean_se
+from jcomps.analysis.statistics import FT_REFERENCE, mean_se
 
 
 def _floats(rows) -> np.ndarray:

@@ -1,13 +1,13 @@
 """One run over many processes and hosts, with JAX's multi-controller runtime (``jax.distributed``).
 
-Every process runs the same host loop and the same compiled programs; a program's members (``jcomps.members``) are
-sharded over the devices of *every* process (one global mesh over ``jax.devices()``), each process computing the
+Every process runs the same host loop and the same compiled programs; a program's members (``jcomps.runner.members``)
+are sharded over the devices of *every* process (one global mesh over ``jax.devices()``), each process computing the
 members on its own devices. The members never talk to each other, so the programs hold no collectives: processes
 meet only where the host needs every member at once, through JAX's own machinery:
 
 - ``gather``: the metrics after each chunk of tasks and each evaluation, one all-gather per event (a jitted
   identity to a replicated sharding: every process gets every member's metrics);
-- the checkpoints: Orbax's multi-process checkpointing (``jcomps.checkpoint``: every process writes and restores
+- the checkpoints: Orbax's multi-process checkpointing (``jcomps.runner.checkpoint``: every process writes and restores
   its own shards of the states, process 0 the metrics and counters, which every process holds whole);
 - ``barrier``: before process 0 writes the run directory's files that the others then read.
 
@@ -18,7 +18,7 @@ cover every process's members.
 Starting: ``--coordinator HOST:PORT --num-processes N --process-id I`` (``add_args``), or none of them under a
 cluster manager that ``jax.distributed.initialize()`` detects (a SLURM step or an Open MPI job of more than one
 task: ``detect``). Without either a run is one process, as before. ``start`` must run before JAX starts its
-backend (like ``jcomps.hostdevices.configure``). Failure: a process that loses its peers (one died or was killed:
+backend (like ``jcomps.runner.hostdevices.configure``). Failure: a process that loses its peers (one died or was killed:
 a collective or a barrier fails) raises ``PeerLost``, which the runner turns into a message and exit code 3 at
 once; a peer that stops answering without closing its connections (a host that froze) is caught by the runtime's
 heartbeat, which stops every process within ``--heartbeat-timeout`` seconds with its own message. A process that

@@ -1,7 +1,7 @@
 """The members of a compiled program and their random streams.
 
 A program runs its members side by side: ``vmap`` over the members of a device, ``shard_map`` over devices (the
-member axis). Members are the seeds, or with a hyperparameter grid (``jcomps.grid``) the program's grid points ×
+member axis). Members are the seeds, or with a hyperparameter grid (``jcomps.runner.grid``) the program's grid points ×
 the seeds, point-major, padded up to a multiple of the devices used (every device gets the same number; padding
 members cost no wall time and are dropped from every result).
 
@@ -17,12 +17,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jcomps import envs, grid as grids
+from jcomps import envs
+from jcomps.runner import grid as grids
 
 
 def num_devices(seeds: int, available: Optional[int] = None) -> int:
     """How many devices ``seeds`` seeds (or members) are spread over: all available ones, at most one per seed;
-    with several processes (``jcomps.distributed``) every device of every process, since each process must hold
+    with several processes (``jcomps.runner.distributed``) every device of every process, since each process must hold
     members of the program (fewer members than devices are padded)."""
     if available is None and jax.process_count() > 1:
         return jax.device_count()

@@ -23,10 +23,21 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from jcomps import buffers, networks, progress, vtrace
-from jcomps.numerics import (all_finite, check_field, check_finite_fields, guarded_update, keep_if_finite,
-                             masked_explained_variance, masked_mean, masked_standardize, masked_var, optimizer_step)
+from jcomps import progress
+from jcomps.numerics import (
+    all_finite,
+    check_field,
+    check_finite_fields,
+    guarded_update,
+    keep_if_finite,
+    masked_explained_variance,
+    masked_mean,
+    masked_standardize,
+    masked_var,
+    optimizer_step,
+)
 from jcomps.progress import ProgressFn
+from jcomps.training import buffers, networks, vtrace
 
 
 @dataclasses.dataclass(frozen=True)

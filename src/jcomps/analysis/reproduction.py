@@ -1,5 +1,5 @@
 """A family's experiments of the paper, reproduced: the protocol (methods, sequences, seeds, tasks) at the paper's
-scale or a CPU's, and the comparison of a study's results with what the paper reports (``jcomps.paper``): the
+scale or a CPU's, and the comparison of a study's results with what the paper reports (``jcomps.analysis.paper``): the
 Figure-3 panel (iterations to success per task), the lifelong-return panel, the p-value table beside the
 paper's, and the table of the paper's claims with what the study shows for each.
 
@@ -15,7 +15,8 @@ from typing import Optional
 
 import numpy as np
 
-from jcomps import envs, methods, paper, statistics
+from jcomps import envs, methods
+from jcomps.analysis import paper, statistics
 from jcomps.numerics import check_field
 
 SCALES = ("cpu", "paper")
@@ -107,9 +108,9 @@ def protocol(family: str, scale: str = "cpu", seeds: Optional[int] = None, num_t
              extra: tuple = ()) -> Protocol:
     """The paper's protocol for ``family`` at ``scale``, with overrides.
 
-    - ``paper``: CoMPS, PPO+TL, GMPS+PPO, MAML+TL, PNC and PEARL (``jcomps.paper.METHODS``) on both sequences, 6
-      seeds, 40 tasks (the family's list where shorter: MetaWorld's 39), the held-out meta-test's 5-iteration
-      curve; each family's own budget and calibrated settings (its registered defaults).
+    - ``paper``: CoMPS, PPO+TL, GMPS+PPO, MAML+TL, PNC and PEARL (``jcomps.analysis.paper.METHODS``) on both
+      sequences, 6 seeds, 40 tasks (the family's list where shorter: MetaWorld's 39), the held-out meta-test's
+      5-iteration curve; each family's own budget and calibrated settings (its registered defaults).
     - ``cpu``: CoMPS, GMPS+PPO and PPO+TL on the first 6 non-stationary tasks, 4 seeds, no held-out test.
 
     ``ablation`` adds the ladder's other rungs (GMPS, GMPS+PPO+IS, ×2 skilled data)."""
@@ -148,8 +149,8 @@ def per_seed(results: dict, method: str, quantity: str) -> np.ndarray:
 
 def p_value_table(results: dict, family: str, sequence: str) -> list[dict]:
     """CoMPS against every other method of ``results`` (a sequence's merged results.json), on the quantity the
-    paper's table for ``sequence`` tests (``jcomps.paper.QUANTITY``) and on the other one: one row per method with
-    the means, this study's t-test and bootstrap p-values and the paper's p-value (None where it has none)."""
+    paper's table for ``sequence`` tests (``jcomps.analysis.paper.QUANTITY``) and on the other one: one row per method
+    with the means, this study's t-test and bootstrap p-values and the paper's p-value (None where it has none)."""
     rows = []
     for method in results["methods"]:
         if method == "comps":
@@ -241,7 +242,7 @@ def _backward_transfer(results: dict) -> dict:
 
 
 def claims_table(results_by_sequence: dict, family: str) -> list[dict]:
-    """One row per claim of ``jcomps.paper.CLAIMS`` and sequence run: {"claim", "text", "where", "sequence",
+    """One row per claim of ``jcomps.analysis.paper.CLAIMS`` and sequence run: {"claim", "text", "where", "sequence",
     "verdict" (holds, level, reversed, n/a), "shows" (the figures behind it)}."""
     check = {"fastest": _fastest, "faster_with_tasks": _faster_with_tasks,
              "ahead_of_gmps_ppo": lambda r: _ahead_of(r, "gmps_ppo"), "highest_return": _highest_return,
@@ -280,7 +281,8 @@ def markdown(family: str, proto: Protocol, results_by_sequence: dict, partial: O
               "averaged over 5 iterations and over seeds, the paper's Figure 4, left)."]
     for sequence, results in results_by_sequence.items():
         lines += ["", f"## {sequence}", "", f"p-values of CoMPS against each method: {paper.TEST}. The paper "
-                  f"tests {'iterations to success' if paper.QUANTITY[sequence] == 'iterations' else 'the average return'}"
+                  f"tests "
+                  f"{'iterations to success' if paper.QUANTITY[sequence] == 'iterations' else 'the average return'}"
                   f" on this sequence; so does the column *ours*. Means are per-seed means over the sequence.", "",
                   "| CoMPS vs | iterations (CoMPS, other) | p, t-test / bootstrap | average return (CoMPS, other) "
                   "| p, t-test / bootstrap | ours | the paper's |", "|---|---|---|---|---|---|---|"]

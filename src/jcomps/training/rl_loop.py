@@ -22,9 +22,10 @@ from typing import Any, Callable, NamedTuple, Optional
 import jax
 import jax.numpy as jnp
 
-from jcomps import acting, progress
+from jcomps import progress
 from jcomps.numerics import all_finite
 from jcomps.progress import ProgressFn
+from jcomps.training import acting
 
 
 class IterationMetrics(NamedTuple):

@@ -5,7 +5,7 @@ stores, rng, counters), the metrics so far and the run's counters, so a resumed 
 stopped (brax saves parameters only). An unreadable checkpoint is moved aside, never deleted, and the one before
 it is tried.
 
-The states are saved as the sharded arrays they are, so that a run of several processes (``jcomps.distributed``)
+The states are saved as the sharded arrays they are, so that a run of several processes (``jcomps.runner.distributed``)
 uses Orbax's multi-process checkpointing: every process writes its own members' shards and restores them, process
 0 writes the metrics and counters (NumPy arrays every process holds whole) and, once all are written, commits the
 step (renames it into place), so a step is there whole or not at all.
@@ -22,7 +22,7 @@ from typing import Optional
 import jax
 import numpy as np
 
-from jcomps import distributed
+from jcomps.runner import distributed
 
 
 class RunError(ValueError):

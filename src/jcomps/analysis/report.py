@@ -1,9 +1,9 @@
 """Results of a run directory: ``results.json``, the paper's plots and a significance table.
 
-Everything here is computed from ``run.json`` and ``raw/<entry>.npz`` (``jcomps.results.RawResults``), so
+Everything here is computed from ``run.json`` and ``raw/<entry>.npz`` (``jcomps.runner.results.RawResults``), so
 ``python experiments/report.py RUN_DIR`` regenerates all of it at any time. This module reads the run directory,
 builds ``results.json`` (``summarize``) and the markdown tables, and writes them; the arithmetic is in
-``jcomps.statistics`` and the figures are drawn by ``jcomps.plots``.
+``jcomps.analysis.statistics`` and the figures are drawn by ``jcomps.analysis.plots``.
 
 Metrics (SPEC, "Metrics a user expects"):
 
@@ -21,7 +21,7 @@ Metrics (SPEC, "Metrics a user expects"):
 - the field's current convention (Agarwal et al. 2021, "rliable"): the interquartile mean (IQM) of
   iterations-to-success over seeds × tasks, with a 95% percentile confidence interval from a stratified bootstrap
   (seeds resampled with replacement within each task, 2,000 resamples), for each half of the sequence;
-- the continual-RL field's metrics (``jcomps.continual_metrics``; Continual World, Wołczyk et al. 2021, and
+- the continual-RL field's metrics (``jcomps.analysis.continual_metrics``; Continual World, Wołczyk et al. 2021, and
   rliable): forgetting per task (success right after learning it − success at the last evaluation of the learnt
   tasks, the end of the sequence) and at every evaluation; average performance (mean success over the tasks
   learnt); forward transfer against ``ppo`` from scratch when the run (or a merged run) has it, from the RL
@@ -29,7 +29,7 @@ Metrics (SPEC, "Metrics a user expects"):
   task (Mann–Whitney over seeds, averaged over tasks) with a stratified-bootstrap interval; performance profiles
   of iterations-to-success (``plots/performance_profile.png``; the others in ``plots/continual_metrics.png``).
 
-With a hyperparameter grid (``jcomps.grid``) there is one entry per method and grid point, keyed
+With a hyperparameter grid (``jcomps.runner.grid``) there is one entry per method and grid point, keyed
 ``METHOD[field=value,...]``, each with its ``grid`` values and an ``overall`` summary (mean iterations-to-success
 over tasks and seeds ± the standard error of the per-seed means, mean return); ``best`` names each method's best
 point (lowest mean iterations-to-success, ties broken by the higher mean return). The plots and the
@@ -43,12 +43,14 @@ from typing import Optional
 
 import numpy as np
 
-from jcomps import envs, methods, plots, rundir, statistics
-from jcomps import continual_metrics as cm
-from jcomps import results as results_
-from jcomps import grid as grids
-from jcomps.checkpoint import RunError
-from jcomps.statistics import BOOTSTRAP_SAMPLES, FT_REFERENCE, IQM_BOOTSTRAP_SAMPLES, mean_se
+from jcomps import envs, methods
+from jcomps.analysis import continual_metrics as cm
+from jcomps.analysis import plots, statistics
+from jcomps.analysis.statistics import BOOTSTRAP_SAMPLES, FT_REFERENCE, IQM_BOOTSTRAP_SAMPLES, mean_se
+from jcomps.runner import grid as grids
+from jcomps.runner import results as results_
+from jcomps.runner import rundir
+from jcomps.runner.checkpoint import RunError
 
 
 def _curves(values: np.ndarray, valid: np.ndarray) -> list:
@@ -301,7 +303,7 @@ def critic_summary(per_iteration) -> dict:
 
 
 def meta_summary(meta) -> dict:
-    """The health of a method's meta phases (``jcomps.meta.MetaMetrics`` with leading [seeds, tasks]) for
+    """The health of a method's meta phases (``jcomps.training.meta.MetaMetrics`` with leading [seeds, tasks]) for
     ``results.json``: per seed and task, means over the seen slots at the start (before the first outer step,
     after the new head was initialised) and the end of the meta phase that followed the task, on each slot's whole
     stores; the newest task's head (slot = task position) and the oldest task's importance weights apart; and the

@@ -12,8 +12,8 @@ from typing import Any, Callable, NamedTuple, Optional
 import jax
 import jax.numpy as jnp
 
-from jcomps import networks
 from jcomps.envs.base import Family
+from jcomps.training import networks
 
 
 class Trajectory(NamedTuple):
@@ -50,7 +50,7 @@ class Actor(NamedTuple):
 
     Attributes:
       act: the policy's ``ActFn``.
-      host_kind: the name of ``act``'s NumPy twin (``jcomps.host_acting.TWINS``), with which a family simulated on
+      host_kind: the name of ``act``'s NumPy twin (``jcomps.envs.host_acting.TWINS``), with which a family simulated on
         the host runs whole rollouts there; None: no twin (such a family is stepped through its ``step``).
     """
 
@@ -95,8 +95,8 @@ def rollout(family: Family, policy: Any, task, rng: jax.Array, num_envs: int, ac
     ``actor`` (default: the Gaussian MLP policy's).
 
     A family simulated on the host (``family.host_rollout``) runs the whole rollout there when the actor has a
-    NumPy twin (``actor.host_kind``, see ``jcomps.host_acting``); the policy's noise is drawn here either way. Inside
-    ``only_if(active)`` the host skips the rollout where ``active`` is False and returns zeros.
+    NumPy twin (``actor.host_kind``, see ``jcomps.envs.host_acting``); the policy's noise is drawn here either way.
+    Inside ``only_if(active)`` the host skips the rollout where ``active`` is False and returns zeros.
     """
     reset_rng, step_rng = jax.random.split(rng)
     if family.host_rollout is not None and actor.host_kind is not None:

@@ -2,26 +2,26 @@
 
 A run directory holds:
 
-- ``run.json``: everything that defines the run (``jcomps.rundir``); a resume must match it.
-- ``checkpoints/<program>/<step>/``: checkpoints (``jcomps.checkpoint``) of a program's entire state
+- ``run.json``: everything that defines the run (``jcomps.runner.rundir``); a resume must match it.
+- ``checkpoints/<program>/<step>/``: checkpoints (``jcomps.runner.checkpoint``) of a program's entire state
   (parameters, optimiser states, experience stores, rng, counters) and the metrics so far, written after every
   chunk of tasks. A program is a method (``checkpoints/<method>``), or with a grid one per combination of its
   shape-changing values (``checkpoints/<method>@hidden_sizes=64x32``).
 - ``raw/<entry>.npz``: all metrics of a results entry (a method, or a method at a grid point) once its program
-  is done: a ``jcomps.results.RawResults``, the input of ``jcomps.report``. Until then
+  is done: a ``jcomps.runner.results.RawResults``, the input of ``jcomps.analysis.report``. Until then
   ``raw/partial/<entry>.npz`` holds the tasks finished so far, rewritten after every chunk
   (``report.py --partial`` reports a stopped run from them).
-- ``results.json``, ``plots/*.png``, ``significance.md``: written by ``jcomps.report`` at the end.
+- ``results.json``, ``plots/*.png``, ``significance.md``: written by ``jcomps.analysis.report`` at the end.
 
-Here is the host loop. A program's members (``jcomps.members``: the seeds, or a grid's points × the seeds) run
-through its compiled programs (``jcomps.programs``): the host loops over the tasks of a chunk (``learn``, then
+Here is the host loop. A program's members (``jcomps.runner.members``: the seeds, or a grid's points × the seeds) run
+through its compiled programs (``jcomps.runner.programs``): the host loops over the tasks of a chunk (``learn``, then
 ``evaluate_task``), evaluates after the chunk (``heldout``) and checkpoints; since every chunk runs through the
 same programs from the restored state, a resumed run gives per-task results identical to an uninterrupted one.
 
 Nothing here prints: the outside world gets events through one ``progress_fn`` callback (``ProgressReceiver``;
 ``experiments/progress.py`` turns them into progress lines and TensorBoard logs). Compiled programs live in a
 ``Programs`` cache owned by the caller, never in a module-level registry, so two runs never share progress.
-``RunError`` (``jcomps.checkpoint``) is what ``run`` raises for a run directory it cannot make or resume.
+``RunError`` (``jcomps.runner.checkpoint``) is what ``run`` raises for a run directory it cannot make or resume.
 """
 
 from __future__ import annotations
@@ -36,12 +36,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jcomps import continual, distributed, envs, grid as grids, methods, progress, results
-from jcomps.checkpoint import Checkpoints, RunError, record, unflatten  # noqa: F401 - RunError: what run raises
-from jcomps.members import eval_keys, layout, method_keys, num_devices, task_sequences
+from jcomps import continual, envs, methods, progress
 from jcomps.numerics import check_field, check_finite_fields
-from jcomps.programs import PART_NAMES, Programs
-from jcomps.rundir import describe, open_run_dir
+from jcomps.runner import distributed, results
+from jcomps.runner import grid as grids
+from jcomps.runner.checkpoint import Checkpoints, RunError, record, unflatten  # noqa: F401 - RunError: what run raises
+from jcomps.runner.members import eval_keys, layout, method_keys, num_devices, task_sequences
+from jcomps.runner.programs import PART_NAMES, Programs
+from jcomps.runner.rundir import describe, open_run_dir
 
 
 @dataclasses.dataclass(frozen=True)
@@ -120,17 +122,18 @@ ProgressReceiver = Callable[[dict], None]
   ``tasks`` (the chosen tasks, empty for the family's list),
   ``seeds``, ``grid_points``, ``padding``, ``devices``, ``budget``, ``chunk``, ``start_task``: 0, ``members``:
   each member's name);
-- ``COMPILING`` / ``COMPILED``: one of its programs (``jcomps.programs.PARTS``) is being compiled / is ready
+- ``COMPILING`` / ``COMPILED``: one of its programs (``jcomps.runner.programs.PARTS``) is being compiled / is ready
   (``program``, ``family``, ``method``, ``part``, ``what``: its name in words; ``COMPILED`` adds ``seconds``,
-  ``trace_seconds`` and ``cached``: whether it came from the persistent compile cache, ``jcomps.compile_cache``);
-  a compile still running says so every ``jcomps.programs.HEARTBEAT_SECONDS`` with ``STILL_COMPILING`` (the same
+  ``trace_seconds`` and ``cached``: whether it came from the persistent compile cache, ``jcomps.runner.compile_cache``);
+  a compile still running says so every ``jcomps.runner.programs.HEARTBEAT_SECONDS`` with ``STILL_COMPILING`` (the same
   fields and the ``seconds`` so far); ``learn`` compiles first and alone, the evaluation programs while the first
   task trains;
 - ``RESUMED``: it continues from a checkpoint (``program``, ``step``, ``tasks_done``, ``num_tasks``);
 - ``EVALUATING`` / ``EVALUATED``: the held-out meta-test and learnt-task evaluation after ``after_tasks`` tasks
   (0: the initial policies, measured after the first chunk) begins (``learnt``: how many learnt tasks it
-  evaluates; ``adapts``: whether the meta-test adapts, or measures the zero-shot return only) / ends (``seconds``); in between, ``HELDOUT_ITERATION`` events give each member's adaptation progress
-  (``member``, ``heldout_task``, ``heldout_iteration``, ``success_rate``, ``mean_return``);
+  evaluates; ``adapts``: whether the meta-test adapts, or measures the zero-shot return only) / ends (``seconds``); in
+  between, ``HELDOUT_ITERATION`` events give each member's adaptation progress (``member``, ``heldout_task``,
+  ``heldout_iteration``, ``success_rate``, ``mean_return``);
 - ``WARNING``: something was set aside (``message``), e.g. an unreadable checkpoint;
 - ``ITERATION`` / ``META_STEP``: a member's progress inside a chunk (``program``, ``member``, ``task`` and the
   ``jcomps.progress`` metrics: ``iteration``, ``success_rate``, ``mean_return``, ``value_ev`` / ``meta_step``,
@@ -153,7 +156,7 @@ def run(out: str, run_config: RunConfig, eval_config: continual.EvalConfig, meth
         resume: bool = False, progress_fn: ProgressReceiver = _silent, grid: grids.Grid = (),
         overrides: Optional[dict] = None, programs: Optional[Programs] = None) -> dict:
     """Runs every method of ``run_config`` into ``out`` (resuming where it stopped), each at every point of the
-    hyperparameter ``grid`` (``jcomps.grid``; empty: no grid); returns RawResults by results entry key. Events go
+    hyperparameter ``grid`` (``jcomps.runner.grid``; empty: no grid); returns RawResults by results entry key. Events go
     to ``progress_fn`` (``ProgressReceiver``); compiled programs are kept in ``programs`` (default: a fresh cache)."""
     eval_config = eval_config.resolve(run_config.family)
     open_run_dir(out, describe(run_config, eval_config, method_configs, grid, overrides), resume)
@@ -187,10 +190,10 @@ def run_method(out: str, name: str, run: RunConfig, eval_config: continual.EvalC
 def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: continual.EvalConfig, resume: bool,
                 progress_fn: ProgressReceiver = _silent, programs: Optional[Programs] = None,
                 stop_after_chunks: Optional[int] = None) -> Optional[dict]:
-    """Runs (or resumes) one program (``jcomps.grid.programs``): its grid points × the seeds as one set of
+    """Runs (or resumes) one program (``jcomps.runner.grid.programs``): its grid points × the seeds as one set of
     compiled programs; returns {entry key: RawResults} when the sequence is done. Events go to ``progress_fn``.
 
-    Members are laid out by ``jcomps.members.layout``. A member uses its seed's keys and (stationary) task order,
+    Members are laid out by ``jcomps.runner.members.layout``. A member uses its seed's keys and (stationary) task order,
     whatever its grid point. ``programs`` holds the compiled programs (default: a fresh cache).
     ``stop_after_chunks`` (tests) returns None after that many chunks of this call, as if killed.
     """
@@ -208,7 +211,7 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
 
 
 def to_host(tree):
-    """``tree``'s arrays as NumPy arrays, on every process (``jcomps.distributed.gather``: with several processes
+    """``tree``'s arrays as NumPy arrays, on every process (``jcomps.runner.distributed.gather``: with several processes
     one all-gather). An empty array sharded over several devices (e.g. no backward-transfer tasks:
     [members, tasks, 0]) is made on the host: jax 0.10's ``device_get`` of one fails to assemble it."""
     return distributed.gather(tree)

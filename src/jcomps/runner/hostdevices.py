@@ -71,7 +71,7 @@ def configure(devices: int) -> None:
     """Sets this process's environment for ``devices`` CPU host devices (see the module docstring). Must run
     before JAX creates its CPU backend; raises ``RuntimeError`` if that already happened."""
     if _backend_started():
-        raise RuntimeError("jcomps.hostdevices.configure must run before JAX starts its CPU backend "
+        raise RuntimeError("jcomps.runner.hostdevices.configure must run before JAX starts its CPU backend "
                            "(call it before any JAX computation, ideally before `import jax`)")
     os.environ.update(environment(devices))
 

@@ -1,6 +1,6 @@
 """The continual-RL field's metrics, as pure functions of arrays: Continual World's forgetting, forward transfer and
 average performance (Wołczyk et al. 2021), and rliable's probability of improvement and performance profiles
-(Agarwal et al. 2021). ``jcomps.report`` applies them to a run's raw results; the choices behind them are in
+(Agarwal et al. 2021). ``jcomps.analysis.report`` applies them to a run's raw results; the choices behind them are in
 docs/design.md ("The continual-RL field's metrics").
 
 Arrays are seeds × tasks ``[S, N]`` (task = position in the sequence) unless said otherwise; NaN marks what is

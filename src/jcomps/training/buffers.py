@@ -26,7 +26,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jcomps.acting import Trajectory
+from jcomps.training.acting import Trajectory
 
 
 class SkilledStore(NamedTuple):
