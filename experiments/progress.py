@@ -14,7 +14,7 @@ import numpy as np
 from jcomps.analysis import continual_metrics as cm
 from jcomps.analysis import statistics
 from jcomps.runner import experiment
-from jcomps.runner.checkpoint import RunError
+from jcomps.runner.files import RunError
 
 
 class Progress:

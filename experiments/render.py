@@ -29,9 +29,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from jcomps import continual, envs, methods
-from jcomps.analysis import report
-from jcomps.runner import checkpoint, distributed, experiment, members
+from jcomps.runner import checkpoint, distributed, members, rundir
 from jcomps.runner import grid as grids
+from jcomps.runner.description import RunDescription
+from jcomps.runner.files import RunError
 
 
 def _episodes(family, act, policy, task, rng, episodes: int, mean):
@@ -57,27 +58,15 @@ def _episodes(family, act, policy, task, rng, episodes: int, mean):
     return sims, rewards, success, valid, jnp.concatenate([state.obs[None, :, :2], xy])
 
 
-def _specs(description: dict, family) -> dict:
-    """{method: [ProgramSpec]} of the run, configs as stored."""
-    names = description["run"]["methods"]
-    classes = {m: methods.config_class(m) for m in names}
-    grid = grids.from_json(description.get("grid"), classes)
-    out = {}
-    for m in names:
-        config = methods.resolve_config(m, family, stored=description["methods"][m])
-        out[m] = grids.programs(m, config, grid)
-    return out
-
-
-def _policies(run_dir: str, description: dict, family, spec, warn):
+def _policies(run_dir: str, description: RunDescription, spec, warn):
     """The members' states of program ``spec`` from its newest checkpoint, and the number of tasks learnt."""
-    run = description["run"]
+    run, family = description.run, description.family
     found = checkpoint.read_latest(os.path.join(run_dir, "checkpoints", spec.directory), warn)
     if found is None:
-        raise experiment.RunError(f"{run_dir}: {spec.label} has no checkpoint yet (it writes one after every chunk "
+        raise RunError(f"{run_dir}: {spec.label} has no checkpoint yet (it writes one after every chunk "
                                   "of tasks)")
     _, tree = found
-    _, member_seed, hparams = members.layout(spec, run["seeds"], run["seed"], description["devices"])
+    _, member_seed, hparams = members.layout(spec, run.seeds, run.seed, description.devices)
 
     def make(h):
         return methods.make(spec.method, family, grids.with_traced(spec.config, h) if h else spec.config)
@@ -89,8 +78,8 @@ def _policies(run_dir: str, description: dict, family, spec, warn):
         shapes = jax.eval_shape(lambda k: continual.init_seeds(make({}), k), keys)
     like = jax.tree.map(lambda s: np.zeros(s.shape, s.dtype), shapes)
     states = checkpoint.unflatten(like, tree["states"])
-    chunk = min(run["chunk_tasks"], run["num_tasks"])
-    learnt = min(int(tree["counters"]["next_chunk"]) * chunk, run["num_tasks"])
+    chunk = min((description.chunk_tasks_by_method or {}).get(spec.method, run.chunk_tasks), run.num_tasks)
+    learnt = min(int(tree["counters"]["next_chunk"]) * chunk, run.num_tasks)
     return states, learnt
 
 
@@ -117,25 +106,24 @@ def _plot_point_goal(path, xy, goal, title):
 def render(run_dir: str, methods_=None, seed=None, tasks=None, mean=False, episodes=None, base_url=None,
            out_dir=None, print_fn=print) -> list[str]:
     """Writes the viewers (see the module docstring); returns their paths."""
-    description = report.read_description(run_dir)
-    run = description["run"]
-    family = envs.make(run["family"])
+    description = rundir.read(run_dir)
+    run, family = description.run, description.family
     if family.host_rollout is not None:
-        raise experiment.RunError("render.py draws the MJX families with brax's viewer and Point Goal as a plot; "
+        raise RunError("render.py draws the MJX families with brax's viewer and Point Goal as a plot; "
                                   "MetaWorld runs on MuJoCo's C library, whose renderer needs OpenGL, and has no "
                                   "replay here yet")
-    specs = _specs(description, family)
-    chosen = methods_ or run["methods"]
+    specs = {m: description.programs(m) for m in run.methods}
+    chosen = methods_ or run.methods
     for m in chosen:
         if m not in specs:
-            raise experiment.RunError(f"--method {m}: not a method of this run; its methods: {', '.join(specs)}")
-    seed = run["seed"] if seed is None else seed
-    if not run["seed"] <= seed < run["seed"] + run["seeds"]:
-        raise experiment.RunError(f"--seed {seed}: the run's seeds are {run['seed']}..{run['seed'] + run['seeds'] - 1}")
+            raise RunError(f"--method {m}: not a method of this run; its methods: {', '.join(specs)}")
+    seed = run.seed if seed is None else seed
+    if seed not in run.seed_list:
+        raise RunError(f"--seed {seed}: the run's seeds are {run.seed}..{run.seed_list[-1]}")
     for t in tasks or ():
-        if not 1 <= t <= run["num_tasks"]:
-            raise experiment.RunError(f"--tasks {t}: tasks are numbered 1..{run['num_tasks']} in this run")
-    values = envs.sequence_values(family, run["sequence"], seed, run["num_tasks"], run.get("tasks"))
+        if not 1 <= t <= run.num_tasks:
+            raise RunError(f"--tasks {t}: tasks are numbered 1..{run.num_tasks} in this run")
+    values = envs.sequence_values(family, run.sequence, seed, run.num_tasks, run.tasks)
     out_dir = out_dir or os.path.join(run_dir, "render")
     os.makedirs(out_dir, exist_ok=True)
     warn = lambda message: print_fn(f"warning: {message}")  # noqa: E731
@@ -148,14 +136,14 @@ def render(run_dir: str, methods_=None, seed=None, tasks=None, mean=False, episo
         method = methods.make(m, family, config)
         act = method.actor.act
         for spec in specs[m]:
-            states, learnt = _policies(run_dir, description, family, spec, warn)
+            states, learnt = _policies(run_dir, description, spec, warn)
             if learnt == 0:
-                raise experiment.RunError(f"{run_dir}: {spec.label} has learnt no task yet")
+                raise RunError(f"{run_dir}: {spec.label} has learnt no task yet")
             for p, point in enumerate(spec.points):
-                member = p * run["seeds"] + (seed - run["seed"])
+                member = p * run.seeds + (seed - run.seed)
                 state = jax.tree.map(lambda x: jnp.asarray(x[member]), states)
                 for t in tasks or [learnt]:
-                    task = envs.task_at(family, t - 1, run["sequence"], seed, run.get("tasks"))
+                    task = envs.task_at(family, t - 1, run.sequence, seed, run.tasks)
                     rng = jax.random.fold_in(jax.random.PRNGKey(seed), t)
                     # the policy for task t (PEARL's latent from task t's replay buffer); a task not learnt yet
                     # meets the policy after the last one learnt
@@ -213,7 +201,7 @@ def main(argv=None):
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
     try:
         render(args.run_dir, args.method, args.seed, args.tasks, args.mean, args.episodes, args.base_url, args.out)
-    except experiment.RunError as err:
+    except RunError as err:
         print(f"error: {err}", file=sys.stderr)
         sys.exit(2)
 

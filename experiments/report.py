@@ -11,7 +11,8 @@ import argparse
 import sys
 
 from jcomps.analysis import report
-from jcomps.runner import distributed, experiment
+from jcomps.runner import distributed
+from jcomps.runner.files import RunError
 
 
 def main(argv=None):
@@ -28,7 +29,7 @@ def main(argv=None):
         return
     try:
         results = report.write(args.run_dir, baseline=args.baseline, partial=args.partial)
-    except experiment.RunError as err:
+    except RunError as err:
         print(f"error: {err}", file=sys.stderr)
         sys.exit(2)
     for path in results["plots"]:

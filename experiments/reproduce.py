@@ -35,9 +35,9 @@ sys.path.insert(0, HERE)
 from progress import _clock  # noqa: E402
 
 from jcomps import envs  # noqa: E402
-from jcomps.analysis import paper, report, reproduction
-from jcomps.runner import hostdevices, results, rundir
-from jcomps.runner.checkpoint import RunError  # noqa: E402
+from jcomps.analysis import paper, reproduction  # noqa: E402
+from jcomps.runner import files, hostdevices, results, rundir  # noqa: E402
+from jcomps.runner.files import RunError  # noqa: E402
 
 STUDY = "study.json"
 FORMAT = 1
@@ -104,7 +104,7 @@ def _study(args) -> dict:
         if not os.path.isfile(path):
             raise ValueError(f"{args.out} holds no study ({STUDY} missing); start it without --resume/--partial")
         try:
-            stored = rundir.read_json(path)  # RunError (a ValueError) naming the file when it is not JSON
+            stored = files.read_json(path)  # RunError (a ValueError) naming the file when it is not JSON
             proto = reproduction.Protocol.from_json(stored["protocol"])
             devices = int(stored["devices"])
         except (OSError, ValueError, KeyError, TypeError) as err:
@@ -137,8 +137,8 @@ def state(directory: str) -> str:
     if not os.path.isfile(os.path.join(directory, "run.json")):
         return "new"
     try:
-        description = report.read_description(directory)
-        finished = all(results.load(directory, name) is not None for _, name, _ in report._entries(description))
+        description = rundir.read(directory)
+        finished = all(results.load(directory, name) is not None for _, name, _ in description.entries())
     except RunError:
         return "started"
     return "done" if finished else "started"
@@ -258,9 +258,9 @@ def merge_sequence(args, sequence: str, partial: bool):
 
 
 def _has_partial(directory: str) -> bool:
-    description = report.read_description(directory)
+    description = rundir.read(directory)
     return all(results.load(directory, n) is not None or results.load_partial(directory, n) is not None
-               for _, n, _ in report._entries(description))
+               for _, n, _ in description.entries())
 
 
 def write_report(args, partial: bool) -> dict:
@@ -278,12 +278,12 @@ def write_report(args, partial: bool) -> dict:
     if not by_sequence:
         raise RunError(f"{args.out}: no sequence has anything to report yet")
     text = reproduction.markdown(proto.family, proto, by_sequence, cut or None)
-    figures = reproduction.figures(by_sequence, os.path.join(args.out, "figures"))
+    figures = reproduction.figures(by_sequence, os.path.join(args.out, "figures"), proto.family)
     out = {"protocol": proto.to_json(), "partial": cut or None,
            "p_values": {s: reproduction.p_value_table(r, proto.family, s) for s, r in by_sequence.items()},
            "claims": reproduction.claims_table(by_sequence, proto.family),
            "figures": [os.path.relpath(p, args.out) for p in figures]}
-    rundir.write_json(os.path.join(args.out, "reproduction.json"), out)
+    files.write_json(os.path.join(args.out, "reproduction.json"), out)
     with open(os.path.join(args.out, "report.md.tmp"), "w") as f:
         f.write(text)
     os.replace(os.path.join(args.out, "report.md.tmp"), os.path.join(args.out, "report.md"))
@@ -298,7 +298,7 @@ def main(argv=None):
         if not args.partial:
             if not args.resume:
                 os.makedirs(args.out, exist_ok=True)
-                rundir.write_json(os.path.join(args.out, STUDY), {"format": FORMAT, "protocol": proto.to_json(),
+                files.write_json(os.path.join(args.out, STUDY), {"format": FORMAT, "protocol": proto.to_json(),
                                                                   "devices": args.study["devices"]})
             if args.print_commands:
                 for sequence, method in proto.runs():

@@ -21,7 +21,6 @@ Bad options exit with code 2 and a message naming the option.
 
 from __future__ import annotations
 
-import json
 import os
 import sys
 
@@ -40,13 +39,11 @@ def _set_host_devices(argv, processes: int = 1) -> None:
 
     count = option("--devices")
     if count is None and "--resume" in argv and option("--out") is not None:
-        try:
-            with open(os.path.join(option("--out"), "run.json")) as f:
-                stored = json.load(f).get("devices")
-            ok = isinstance(stored, int) and stored >= processes and stored % processes == 0
-            count = str(stored // processes) if ok else None  # else the resume is refused, naming the counts
-        except (OSError, ValueError, AttributeError):
-            pass  # parse_args reports a missing or unreadable run directory
+        from jcomps.runner.files import stored_devices
+
+        stored = stored_devices(option("--out"))
+        ok = stored is not None and stored >= processes and stored % processes == 0
+        count = str(stored // processes) if ok else None  # else the resume is refused, naming the counts
     from jcomps.runner import hostdevices
 
     if count is None:
@@ -75,9 +72,9 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 
 from jcomps import configs, continual, envs, methods  # noqa: E402
-from jcomps.analysis import report
-from jcomps.runner import checkpoint, compile_cache, distributed, experiment, hostdevices, rundir  # noqa: E402
-from jcomps.runner import grid as grids  # noqa: E402
+from jcomps.analysis import report  # noqa: E402
+from jcomps.runner import checkpoint, compile_cache, description, distributed, experiment, hostdevices, rundir  # noqa: E402  # noqa: E402
+from jcomps.runner.files import RunError  # noqa: E402
 from jcomps.runner.programs import Programs  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -88,8 +85,8 @@ from progress import Console  # noqa: E402
 PROGRAMS = Programs()
 
 
-def parse_args(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="run_sequence.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default=None, help="run directory (default: runs/<family>-<time>)")
     parser.add_argument("--resume", action="store_true",
                         help="continue the run in --out from its last checkpoint (options must match it)")
@@ -123,8 +120,14 @@ def parse_args(argv=None):
                              "over the shared options, recorded in run.json (on --resume the stored ones are used; "
                              "different ones are refused)")
     distributed.add_args(parser)
-    configs.add_config_args(parser, [experiment.RunConfig, continual.EvalConfig])
+    configs.add_config_args(parser, [description.RunConfig, continual.EvalConfig])
     configs.add_config_args(parser, [methods.config_class(m) for m in methods.METHODS], envs.settings_by_field())
+    return parser
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    """The command line, parsed (bad words exit 2 naming the option); ``describe`` resolves it into a run."""
+    parser = build_parser()
     args = parser.parse_args(argv)
     if args.devices is not None and args.devices < 1:
         parser.error(f"--devices must be >= 1, got {args.devices}")
@@ -135,101 +138,47 @@ def parse_args(argv=None):
                      f"{hostdevices.cores()} host devices (one per core; more only slow every seed down)")
     if args.resume and not args.out:
         parser.error("--resume needs --out, the run directory to continue")
-    try:
-        if args.resume:
-            _from_stored(args)
-        else:
-            _from_options(args)
-        _grid(args)
-    except (ValueError, TypeError) as err:
-        parser.error(str(err))
-    if args.baseline is not None and args.baseline not in args.run.methods:
-        parser.error(f"--baseline {args.baseline}: not one of --methods ({', '.join(args.run.methods)})")
-    family = envs.make(args.run.family)
-    available = len(args.run.tasks or family.task_values)
-    if args.run.num_tasks > available:
-        parser.error(f"--num-tasks must be in [1, {available}] for {args.run.family}, got {args.run.num_tasks}")
-    if args.run.tasks and not args.resume:
-        held = {family.task_name(v) for v in family.held_out_values}
-        if any(t in held for t in args.run.tasks):
-            print(f"warning: --tasks {' '.join(t for t in args.run.tasks if t in held)}: held out by {family.name} "
-                  f"(its meta-test tasks); the held-out results of this run are not of unseen tasks", file=sys.stderr,
-                  flush=True)
-    for name, config in args.configs.items():
-        for point in args.points[name]:
-            max_tasks = methods.task_slots(point.config)
-            if max_tasks is not None and max_tasks < args.run.num_tasks:
-                option = ("--grid max_tasks=" if any(a.field == "max_tasks" for a in args.grid) else "--max-tasks ")
-                parser.error(f"{option}{max_tasks} is smaller than --num-tasks {args.run.num_tasks} ({name} keeps "
-                             f"one experience slot per task)")
     return args
 
 
-def _grid(args):
-    """``args.grid`` from ``--grid`` (or, on --resume without it, the stored grid), checked: every field known to
-    a method of the run, not also given as a plain option, every value accepted by the configs (``args.points``:
-    every method's grid points, their configs built)."""
-    classes = {name: methods.config_class(name) for name in args.run.methods}
-    if args.grid_specs:
-        args.grid = grids.parse(args.grid_specs, classes)
-    else:
-        args.grid = grids.from_json(getattr(args, "stored", {}).get("grid"), classes)
-    for axis in args.grid:
-        if getattr(args, f"cfg_{axis.field}", None) is not None:
-            raise ValueError(f"--grid {axis.field}: also given as --{axis.field.replace('_', '-')}; give its values "
-                             f"on the grid only")
-        for method, values in args.overrides.items():
-            if any(key.split(".")[-1] == axis.field for key in values):
-                raise ValueError(f"--grid {axis.field}: also given by --set for {method}; give its values on the "
-                                 f"grid only")
-    args.points = {name: grids.points(name, args.configs[name], args.grid) for name in args.run.methods}
+def describe(args: argparse.Namespace) -> description.RunDescription:
+    """The run the parsed command line asks for (``jcomps.runner.description.resolve``: on --resume over the stored
+    run); a value the library refuses exits 2 naming the option."""
+    stored = None
+    if args.resume:
+        try:
+            stored = rundir.read(args.out)
+        except RunError as err:  # a missing or unreadable run.json
+            build_parser().error(f"--resume: {err}" + ("; start it without --resume" if "holds no run" in str(err)
+                                                       else ""))
+    try:
+        described = description.resolve(configs.shared_options(args), set_specs=args.set_specs,
+                                         grid_specs=args.grid_specs, stored=stored)
+        report.check_baseline(args.baseline, described.run.methods)
+    except ValueError as err:
+        build_parser().error(str(err))
+    if described.run.tasks and not args.resume and description.heldout_chosen(described):
+        print(f"warning: --tasks {' '.join(description.heldout_chosen(described))}: held out by "
+              f"{described.run.family} (its meta-test tasks); the held-out results of this run are not of unseen "
+              f"tasks", file=sys.stderr, flush=True)
+    return described
 
 
-def _count_chosen_tasks(args):
-    """--tasks without --num-tasks: as many tasks as given (on --resume too, so that a different list is refused as
-    such by the run directory's check, not by its count)."""
-    if args.cfg_tasks and args.cfg_num_tasks is None:
-        args.cfg_num_tasks = len(args.cfg_tasks)
+def description_of(argv) -> description.RunDescription:
+    """The run the command line ``argv`` describes (``parse_args``, then ``describe``), e.g. to inspect the configs
+    a command would run."""
+    return describe(parse_args(argv))
 
 
-def _from_options(args):
-    _count_chosen_tasks(args)
-    args.run = configs.build_config(experiment.RunConfig, args)
-    args.eval = configs.build_config(continual.EvalConfig, args)
-    # Each method's config from its layers (methods.resolve_config): its registered default on the family, the
-    # shared options, one task slot per task, then --set for that method alone.
-    defaults = {name: methods.default_config(name, args.run.family) for name in args.run.methods}
-    args.overrides = configs.parse_overrides(args.set_specs, defaults)
-    args.configs = {name: methods.resolve_config(name, args.run.family, shared=configs.shared_options(args),
-                                                 num_tasks=args.run.num_tasks, overrides=args.overrides.get(name))
-                    for name in args.run.methods}
-    args.out = args.out or os.path.join("runs", f"{args.run.family}-{time.strftime('%Y%m%d-%H%M%S')}")
-
-
-def _from_stored(args):
-    """On --resume the stored run is the base; options given again must agree with it (checked later)."""
-    path = os.path.join(args.out, "run.json")
-    if not os.path.isfile(path):
-        raise ValueError(f"--resume: {args.out} holds no run (no run.json); start it without --resume")
-    stored = rundir.read_json(path)
-    args.stored = stored
-    _count_chosen_tasks(args)
-    args.run = configs.config_from_dict(experiment.RunConfig(), stored["run"], args)
-    args.eval = configs.config_from_dict(continual.EvalConfig(), stored["eval"], args)
-    # Each method's stored config over its registered default on the family (a field missing from an older run.json
-    # keeps the method's default, not its config class's), the options given again, and --set (given again: over
-    # the stored configs; open_run_dir refuses any difference).
-    defaults = {name: methods.default_config(name, args.run.family) for name in args.run.methods}
-    args.overrides = (configs.parse_overrides(args.set_specs, defaults) if args.set_specs
-                      else stored.get("overrides", {}))
-    args.configs = {name: methods.resolve_config(name, args.run.family, stored=stored["methods"].get(name, {}),
-                                                 shared=configs.shared_options(args),
-                                                 overrides=args.overrides.get(name))
-                    for name in args.run.methods}
+def default_out(family: str) -> str:
+    """Where a run without --out goes."""
+    return os.path.join("runs", f"{family}-{time.strftime('%Y%m%d-%H%M%S')}")
 
 
 def main(argv=None):
     args = parse_args(argv)
+    run = describe(args)
+    args.out = args.out or default_out(run.run.family)
     cluster = distributed.settings(args)
     try:
         cache = compile_cache.configure(args.compile_cache)
@@ -247,15 +196,14 @@ def main(argv=None):
         console = (Console(lambda line: print(line, flush=True), args.out, args.tensorboard, wandb=args.wandb,
                            wandb_group=args.wandb_group) if writer else None)
         receiver = distributed.progress_receiver(console)
-        experiment.run(args.out, args.run, args.eval, args.configs, resume=args.resume, progress_fn=receiver,
-                       grid=args.grid, overrides=args.overrides, programs=PROGRAMS)
+        experiment.run(args.out, run, resume=args.resume, progress_fn=receiver, programs=PROGRAMS)
         distributed.close_receiver(receiver)
         if console is not None:
             console.close()
         if not writer:  # process 0 writes the report and prints the results
             return
         results = report.write(args.out, baseline=args.baseline)
-    except experiment.RunError as err:
+    except RunError as err:
         print(f"error: {err}", file=sys.stderr)
         if cluster.distributed:
             distributed.exit_now(2)
@@ -273,17 +221,17 @@ def main(argv=None):
         if not cluster.distributed:
             raise
         distributed.report_and_exit(err, cluster)
-    print(f"\nmean iterations-to-success per task ({args.run.seeds} seeds):")
+    print(f"\nmean iterations-to-success per task ({run.run.seeds} seeds):")
     for name, m in results["methods"].items():
         print(f"  {name:14s} {np.round(m['iterations_to_success_mean'], 1).tolist()}")
     best = results.get("best", {m: m for m in results["methods"]})
     if "best" in results:
         print("best grid point per method: " + ", ".join(best.values()))
-    half = args.run.num_tasks // 2
+    half = run.run.num_tasks // 2
     if half >= 1:
         later = {n: float(np.mean(np.asarray(results["methods"][n]["iterations_to_success"])[:, half:]))
                  for n in best.values()}
-        print(f"mean over tasks {half + 1}-{args.run.num_tasks}: " +
+        print(f"mean over tasks {half + 1}-{run.run.num_tasks}: " +
               ", ".join(f"{n} {v:.1f}" for n, v in later.items()))
     print(open(os.path.join(args.out, "significance.md")).read())
     print(f"results, plots and checkpoints in {args.out}/")

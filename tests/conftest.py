@@ -96,21 +96,21 @@ def _kill_and_resume(runner, argv: list, out: pathlib.Path, killed, full: pathli
     the uninterrupted run in ``full``, array for array (wall time apart)."""
     from jcomps.runner import experiment, results, rundir
 
-    args = runner.parse_args(argv + ["--out", str(out)])
-    rundir.open_run_dir(str(out), rundir.describe(args.run, args.eval, args.configs), resume=False)
+    run = runner.describe(runner.parse_args(argv + ["--out", str(out)]))
+    rundir.open_run_dir(str(out), run, resume=False)
     for name in killed:
-        assert experiment.run_method(str(out), name, args.run, args.eval, args.configs[name], resume=False,
-                                     programs=runner.PROGRAMS, stop_after_chunks=1) is None
+        assert experiment.run_method(str(out), name, run, resume=False, programs=runner.PROGRAMS,
+                                     stop_after_chunks=1) is None
         assert sorted(os.listdir(out / "checkpoints" / name)) == ["1"]
         # What it finished is reportable before the resume: the uninterrupted run's first chunk, array for array.
         done = results.load_partial(str(out), name)
-        chunk = min(args.run.chunk_tasks, args.run.num_tasks)
+        chunk = min(run.run.chunk_tasks, run.run.num_tasks)
         first = results.truncate(results.load(str(full), name), chunk)
         assert results.tasks_done(done) == chunk
         for a, b in zip(jax.tree.leaves(first._replace(seconds=0.0)), jax.tree.leaves(done._replace(seconds=0.0))):
             np.testing.assert_array_equal(a, b, err_msg=f"{name} partial")
     runner.main(["--out", str(out), "--resume"])
-    for name in args.run.methods:
+    for name in run.run.methods:
         assert results.load_partial(str(out), name) is None  # a finished entry keeps no partial results
         with np.load(full / "raw" / f"{name}.npz") as fa, np.load(out / "raw" / f"{name}.npz") as fb:
             assert fa.files == fb.files

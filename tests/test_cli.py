@@ -36,20 +36,20 @@ def test_help_lists_every_option(runner, capsys):
 
 
 def test_options_build_the_config(runner):
-    args = runner.parse_args(["--learning-rate", "0.005", "--hidden-sizes", "64", "32", "--budget", "7",
-                              "--reset-optimizer", "false", "--out", "/nonexistent/x"])
-    config = args.configs["ppo_tl"]
+    described = runner.description_of(["--learning-rate", "0.005", "--hidden-sizes", "64", "32", "--budget", "7",
+                                       "--reset-optimizer", "false", "--out", "/nonexistent/x"])
+    config = described.methods["ppo_tl"]
     assert config == ppo_tl.PPOTLConfig(ppo=methods.with_family_settings(ppo.PPOConfig(
         learning_rate=0.005, hidden_sizes=(64, 32), budget=7), "point_goal"), reset_optimizer=False)
 
 
 def test_defaults_are_the_family_defaults(runner):
     for family in ("point_goal", "ant_goal"):
-        args = runner.parse_args(["--family", family, "--out", "/nonexistent/x"])
-        for name, config in args.configs.items():
+        described = runner.description_of(["--family", family, "--out", "/nonexistent/x"])
+        for name, config in described.methods.items():
             expected = methods.default_config(name, family)
             if hasattr(expected, "max_tasks"):  # the runner keeps one experience slot per task
-                expected = dataclasses.replace(expected, max_tasks=args.run.num_tasks)
+                expected = dataclasses.replace(expected, max_tasks=described.run.num_tasks)
             assert config == expected, name
 
 
@@ -57,11 +57,11 @@ def test_options_override_the_family_defaults(runner):
     field, value = next(iter(envs.settings("ant_goal", "ppo").items()))
     other = not value if isinstance(value, bool) else value * 2
     flag = "--" + field.replace("_", "-")
-    args = runner.parse_args(["--family", "ant_goal", flag, str(other).lower(), "--out", "/nonexistent/x"])
-    assert getattr(args.configs["ppo_tl"].ppo, field) == other
+    described = runner.description_of(["--family", "ant_goal", flag, str(other).lower(), "--out", "/nonexistent/x"])
+    assert getattr(described.methods["ppo_tl"].ppo, field) == other
     for other_field, default in envs.settings("ant_goal", "ppo").items():
         if other_field != field:
-            assert getattr(args.configs["ppo_tl"].ppo, other_field) == default
+            assert getattr(described.methods["ppo_tl"].ppo, other_field) == default
 
 
 def test_ci_runs_the_readme_test_command():
@@ -95,18 +95,18 @@ def _registered_default(name, family="point_goal", num_tasks=6):
 
 @pytest.mark.parametrize("name", methods.METHODS)
 def test_runner_config_is_the_registered_default_fresh_and_on_resume(runner, name, tmp_path):
-    args = runner.parse_args(["--methods", *_others(name), "--out", str(tmp_path)])
-    for method in args.run.methods:
-        assert args.configs[method] == _registered_default(method), method
+    described = runner.description_of(["--methods", *_others(name), "--out", str(tmp_path)])
+    for method in described.run.methods:
+        assert described.methods[method] == _registered_default(method), method
     # On --resume, from the run.json the runner wrote, and from an older run.json whose method entries lack fields
     # (they keep the method's registered default, not its config class's).
-    description = rundir.describe(args.run, args.eval, args.configs)
-    for stored in (description, {**description, "methods": {m: {"max_tasks": 6} if hasattr(args.configs[m], "max_tasks")
-                                                              else {} for m in args.run.methods}}):
+    description = described.to_json()
+    older = {m: {"max_tasks": 6} if hasattr(described.methods[m], "max_tasks") else {} for m in described.run.methods}
+    for stored in (description, {**description, "methods": older}):
         (tmp_path / "run.json").write_text(json.dumps(stored))
-        resumed = runner.parse_args(["--out", str(tmp_path), "--resume"])
-        for method in args.run.methods:
-            assert resumed.configs[method] == _registered_default(method), method
+        resumed = runner.description_of(["--out", str(tmp_path), "--resume"])
+        for method in described.run.methods:
+            assert resumed.methods[method] == _registered_default(method), method
 
 
 @pytest.mark.parametrize("family", ["cheetah_vel", "ant_goal", "ant_dir"])
@@ -138,24 +138,23 @@ def test_the_ablation_ladder_removes_one_feature_per_rung(family):
 def test_set_changes_one_method_and_is_recorded(runner, tmp_path):
     argv = ["--methods", "comps", "gmps_ppo_is", "--set", "gmps_ppo_is.meta.inner_learning_rate=0.01",
             "--set", "gmps_ppo_is.ppo.hidden_sizes=64x32", "--inner-learning-rate", "0.002", "--out", str(tmp_path)]
-    args = runner.parse_args(argv)
-    assert args.configs["comps"].meta.inner_learning_rate == 0.002  # the shared option
-    assert args.configs["gmps_ppo_is"].meta.inner_learning_rate == 0.01  # --set wins for its method
-    assert args.configs["gmps_ppo_is"].ppo.hidden_sizes == (64, 32)
-    assert args.configs["comps"].ppo.hidden_sizes == ppo.PPOConfig().hidden_sizes
-    description = rundir.describe(args.run, args.eval, args.configs, overrides=args.overrides)
+    described = runner.description_of(argv)
+    assert described.methods["comps"].meta.inner_learning_rate == 0.002  # the shared option
+    assert described.methods["gmps_ppo_is"].meta.inner_learning_rate == 0.01  # --set wins for its method
+    assert described.methods["gmps_ppo_is"].ppo.hidden_sizes == (64, 32)
+    assert described.methods["comps"].ppo.hidden_sizes == ppo.PPOConfig().hidden_sizes
+    description = described.to_json()
     assert description["overrides"] == {"gmps_ppo_is": {"meta.inner_learning_rate": 0.01,
                                                         "ppo.hidden_sizes": [64, 32]}}
     (tmp_path / "run.json").write_text(json.dumps(description))
-    resumed = runner.parse_args(["--out", str(tmp_path), "--resume"])
-    assert resumed.configs == args.configs and resumed.overrides == description["overrides"]
+    resumed = runner.description_of(["--out", str(tmp_path), "--resume"])
+    assert resumed.methods == described.methods and resumed.overrides == description["overrides"]
 
 
 def test_a_different_set_on_resume_is_refused(runner, tmp_path, capsys):
-    args = runner.parse_args(["--methods", "comps", "--set", "comps.meta.inner_learning_rate=0.01",
-                              "--out", str(tmp_path)])
-    rundir.open_run_dir(str(tmp_path), rundir.describe(args.run, args.eval, args.configs,
-                                                               overrides=args.overrides), resume=False)
+    described = runner.description_of(["--methods", "comps", "--set", "comps.meta.inner_learning_rate=0.01",
+                                       "--out", str(tmp_path)])
+    rundir.open_run_dir(str(tmp_path), described, resume=False)
     with pytest.raises(SystemExit) as exit_:
         runner.main(["--out", str(tmp_path), "--resume", "--set", "comps.meta.inner_learning_rate=0.02"])
     assert exit_.value.code == 2
@@ -175,7 +174,7 @@ def test_a_different_set_on_resume_is_refused(runner, tmp_path, capsys):
 ])
 def test_bad_set_exits_2_naming_it(runner, spec, message, capsys):
     with pytest.raises(SystemExit) as exit_:
-        runner.parse_args(["--set", spec, "--out", "/nonexistent/x"])
+        runner.description_of(["--set", spec, "--out", "/nonexistent/x"])
     assert exit_.value.code == 2
     assert message in capsys.readouterr().err
 
@@ -186,19 +185,19 @@ def test_bad_set_exits_2_naming_it(runner, spec, message, capsys):
 ])
 def test_tasks_option_takes_the_familys_own_terms(runner, family, tasks, values, names, capsys):
     """Tasks are read in the family's terms and kept by canonical name (one run however they were written)."""
-    args = runner.parse_args(["--family", family, "--tasks", *tasks, "--out", "/nonexistent/x"])
-    assert args.run.tasks == names and args.run.num_tasks == len(tasks)
+    described = runner.description_of(["--family", family, "--tasks", *tasks, "--out", "/nonexistent/x"])
+    assert described.run.tasks == names and described.run.num_tasks == len(tasks)
     assert "warning" not in capsys.readouterr().err
-    np.testing.assert_array_equal(envs.sequence_values(family, "non-stationary", 0, len(tasks), args.run.tasks),
+    np.testing.assert_array_equal(envs.sequence_values(family, "non-stationary", 0, len(tasks), described.run.tasks),
                                   values)
     # stationary: the chosen tasks shuffled by the seed
-    shuffled = [envs.sequence_values(family, "stationary", s, len(tasks), args.run.tasks) for s in range(6)]
+    shuffled = [envs.sequence_values(family, "stationary", s, len(tasks), described.run.tasks) for s in range(6)]
     assert all(sorted(s) == sorted(values) for s in shuffled) and len({tuple(s) for s in shuffled}) > 1
 
 
 def test_a_chosen_held_out_task_is_warned_about(runner, capsys):
-    args = runner.parse_args(["--family", "metaworld", "--tasks", "P-0", "P-39", "--out", "/nonexistent/x"])
-    assert args.run.tasks == ("P-0", "P-39")
+    described = runner.description_of(["--family", "metaworld", "--tasks", "P-0", "P-39", "--out", "/nonexistent/x"])
+    assert described.run.tasks == ("P-0", "P-39")
     err = capsys.readouterr().err
     assert "warning: --tasks P-39: held out by metaworld" in err and "P-0" not in err
 
@@ -213,5 +212,5 @@ def test_a_chosen_held_out_task_is_warned_about(runner, capsys):
 ])
 def test_bad_tasks_exit_2_naming_them(runner, argv, message, capsys):
     with pytest.raises(SystemExit) as info:
-        runner.parse_args(argv + ["--out", "/nonexistent/x"])
+        runner.description_of(argv + ["--out", "/nonexistent/x"])
     assert info.value.code == 2 and message in capsys.readouterr().err

@@ -7,7 +7,7 @@ import jax
 import numpy as np
 import pytest
 
-from jcomps import continual, envs, methods
+from jcomps import configs, continual, envs, methods
 from jcomps.methods import comps
 from jcomps.training import meta, ppo
 
@@ -172,10 +172,8 @@ def test_where_the_meta_step_starts():
 
 
 def test_runs_made_before_meta_start_are_read_as_they_ran():
-    from jcomps.runner import rundir
-
     for name, earlier in (("gmps_ppo", "last"), ("gmps_ppo_is", "last"), ("comps", "fresh")):
-        stored = rundir._jsonable(methods.default_config(name, "point_goal"))
+        stored = configs.to_json(methods.default_config(name, "point_goal"))
         assert methods.resolve_config(name, "point_goal", stored=stored).meta_start == stored["meta_start"]
         del stored["meta_start"]
         assert methods.resolve_config(name, "point_goal", stored=stored).meta_start == earlier

@@ -111,15 +111,15 @@ def test_killed_and_resumed_run_equals_the_uninterrupted_one(runner, full_run, f
 
 def test_unreadable_checkpoint_falls_back_to_the_one_before(runner, full_run, full_run_argv, tmp_path):
     out = tmp_path / "corrupt"
-    args = runner.parse_args(full_run_argv + ["--out", str(out)])
-    rundir.open_run_dir(str(out), rundir.describe(args.run, args.eval, args.configs), resume=False)
-    experiment.run_method(str(out), "ppo_tl", args.run, args.eval, args.configs["ppo_tl"], resume=False,
+    described = runner.description_of(full_run_argv + ["--out", str(out)])
+    rundir.open_run_dir(str(out), described, resume=False)
+    experiment.run_method(str(out), "ppo_tl", described, resume=False,
                           programs=runner.PROGRAMS, stop_after_chunks=2)
     for path in (out / "checkpoints" / "ppo_tl" / "2").rglob("*"):
         if path.is_file():
             path.write_bytes(b"garbage")
     events = []
-    experiment.run_method(str(out), "ppo_tl", args.run, args.eval, args.configs["ppo_tl"], resume=True,
+    experiment.run_method(str(out), "ppo_tl", described, resume=True,
                           progress_fn=events.append, programs=runner.PROGRAMS)
     assert any(e["event"] == "warning" and "cannot be read" in e["message"] for e in events)
     assert any(e["event"] == "resumed" and e["step"] == 1 for e in events)
@@ -130,8 +130,8 @@ def test_unreadable_checkpoint_falls_back_to_the_one_before(runner, full_run, fu
 
 def test_no_readable_checkpoint_is_a_clear_error(runner, full_run_argv, tmp_path):
     out = tmp_path / "broken"
-    args = runner.parse_args(full_run_argv + ["--out", str(out)])
-    rundir.open_run_dir(str(out), rundir.describe(args.run, args.eval, args.configs), resume=False)
+    described = runner.description_of(full_run_argv + ["--out", str(out)])
+    rundir.open_run_dir(str(out), described, resume=False)
     step = out / "checkpoints" / "ppo_tl" / "1"
     step.mkdir(parents=True)
     (step / "junk").write_text("not a checkpoint")
@@ -161,10 +161,10 @@ def test_report_regenerates_the_results(full_run, tmp_path):
 def test_a_stopped_run_reports_the_tasks_every_method_has_finished(runner, merge_runs, full_run, full_run_argv,
                                                                    tmp_path):
     out = tmp_path / "stopped"
-    args = runner.parse_args(full_run_argv + ["--out", str(out)])
-    rundir.open_run_dir(str(out), rundir.describe(args.run, args.eval, args.configs), resume=False)
+    described = runner.description_of(full_run_argv + ["--out", str(out)])
+    rundir.open_run_dir(str(out), described, resume=False)
     for name, chunks in (("comps", 2), ("ppo_tl", 1)):  # stopped after 2 and 1 of the 3 tasks
-        experiment.run_method(str(out), name, args.run, args.eval, args.configs[name], resume=False,
+        experiment.run_method(str(out), name, described, resume=False,
                               programs=runner.PROGRAMS, stop_after_chunks=chunks)
     with pytest.raises(experiment.RunError, match="comps has not finished; .* with --partial"):
         report.write(str(out))
@@ -216,7 +216,7 @@ def test_a_stopped_run_reports_the_tasks_every_method_has_finished(runner, merge
 def test_bad_options_exit_2_with_a_message(runner, argv, message, capsys):
     extra = [] if "--resume" in argv else ["--out", "/nonexistent/x"]
     with pytest.raises(SystemExit) as info:
-        runner.parse_args(argv + extra)
+        runner.description_of(argv + extra)
     assert info.value.code == 2
     assert re.search(message, capsys.readouterr().err)
 

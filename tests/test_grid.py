@@ -65,21 +65,23 @@ def plain_run(tiny_run):
 ])
 def test_bad_grids_exit_2_naming_the_field(runner, argv, message, capsys):
     with pytest.raises(SystemExit) as info:
-        runner.parse_args(argv + ["--out", "/nonexistent/x"])
+        runner.description_of(argv + ["--out", "/nonexistent/x"])
     assert info.value.code == 2
     assert re.search(message, capsys.readouterr().err)
 
 
 def test_grid_points_keys_and_programs(runner):
-    args = runner.parse_args(["--methods", "comps", "ppo_tl", "--num-tasks", "3", "--grid", "learning_rate=0.01,0.001",
-                              "--grid", "max_tasks=3,4", "--grid", "discount=0.9", "--out", "/nonexistent/x"])
-    assert [p.key for p in args.points["ppo_tl"]] == ["ppo_tl[learning_rate=0.01,discount=0.9]",
-                                                      "ppo_tl[learning_rate=0.001,discount=0.9]"]
-    assert args.points["comps"][1].key == "comps[learning_rate=0.01,max_tasks=4,discount=0.9]"
-    config = args.points["comps"][1].config  # a shared name sets every nested config that has it
+    described = runner.description_of(["--methods", "comps", "ppo_tl", "--num-tasks", "3", "--grid",
+                                       "learning_rate=0.01,0.001", "--grid", "max_tasks=3,4", "--grid", "discount=0.9",
+                                       "--out", "/nonexistent/x"])
+    points = {m: grid.points(m, described.methods[m], described.grid) for m in described.run.methods}
+    assert [p.key for p in points["ppo_tl"]] == ["ppo_tl[learning_rate=0.01,discount=0.9]",
+                                                 "ppo_tl[learning_rate=0.001,discount=0.9]"]
+    assert points["comps"][1].key == "comps[learning_rate=0.01,max_tasks=4,discount=0.9]"
+    config = points["comps"][1].config  # a shared name sets every nested config that has it
     assert (config.ppo.learning_rate, config.max_tasks) == (0.01, 4)
     assert config.ppo.discount == config.meta.discount == 0.9
-    specs = grid.programs("comps", args.configs["comps"], args.grid)
+    specs = grid.programs("comps", described.methods["comps"], described.grid)
     # learning_rate (2 values) is traced; max_tasks changes shapes: one program per value; discount has one value.
     assert [(s.label, s.traced, len(s.points)) for s in specs] == [
         ("comps[max_tasks=3]", ("learning_rate",), 2), ("comps[max_tasks=4]", ("learning_rate",), 2)]
@@ -228,10 +230,10 @@ def test_grid_program_traced_once(runner, grid_run):
 
 def test_killed_and_resumed_grid_run_equals_the_uninterrupted_one(runner, grid_run, tmp_path):
     out = tmp_path / "killed"
-    args = runner.parse_args(TINY + RUN + GRID + ["--out", str(out)])
-    rundir.open_run_dir(str(out), rundir.describe(args.run, args.eval, args.configs, args.grid), resume=False)
-    first = grid.programs("ppo_tl", args.configs["ppo_tl"], args.grid)[0]
-    assert experiment.run_program(str(out), first, args.run, args.eval, resume=False, programs=runner.PROGRAMS,
+    described = runner.description_of(TINY + RUN + GRID + ["--out", str(out)])
+    rundir.open_run_dir(str(out), described, resume=False)
+    first = grid.programs("ppo_tl", described.methods["ppo_tl"], described.grid)[0]
+    assert experiment.run_program(str(out), first, described, resume=False, programs=runner.PROGRAMS,
                                   stop_after_chunks=1) is None
     assert sorted(os.listdir(out / "checkpoints" / "ppo_tl@hidden_sizes=8")) == ["1"]
     runner.main(["--out", str(out), "--resume"])

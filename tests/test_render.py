@@ -27,9 +27,9 @@ PROGRAMS = programs.Programs()
 def stopped_run(runner, tmp_path_factory):
     """A tiny Half-Cheetah run stopped after 2 of its 3 tasks (as if killed): its checkpoints, no results."""
     out = tmp_path_factory.mktemp("render") / "stopped"
-    args = runner.parse_args(TINY + ["--out", str(out)])
-    rundir.open_run_dir(str(out), rundir.describe(args.run, args.eval, args.configs), False)
-    experiment.run_method(str(out), "ppo_tl", args.run, args.eval, args.configs["ppo_tl"], False,
+    described = runner.description_of(TINY + ["--out", str(out)])
+    rundir.open_run_dir(str(out), described, False)
+    experiment.run_method(str(out), "ppo_tl", described, False,
                           programs=PROGRAMS, stop_after_chunks=2)
     return out
 
@@ -86,7 +86,7 @@ def test_render_refuses_what_the_run_does_not_have(render, stopped_run, kwargs, 
 def test_render_without_a_checkpoint_or_run(render, tmp_path, runner):
     with pytest.raises(experiment.RunError, match="no run.json"):
         render.render(str(tmp_path))
-    args = runner.parse_args(TINY + ["--out", str(tmp_path / "new")])
-    rundir.open_run_dir(str(tmp_path / "new"), rundir.describe(args.run, args.eval, args.configs), False)
+    described = runner.description_of(TINY + ["--out", str(tmp_path / "new")])
+    rundir.open_run_dir(str(tmp_path / "new"), described, False)
     with pytest.raises(experiment.RunError, match="ppo_tl has no checkpoint yet"):
         render.render(str(tmp_path / "new"))

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from jcomps.analysis import report, statistics
-from jcomps.runner.checkpoint import RunError
+from jcomps.runner import grid, rundir
+from jcomps.runner.files import RunError
 
 S, N, BUDGET, H = 2, 2, 3, 2  # seeds, tasks, RL-step budget, held-out tasks
 AFTER = np.array([0, 1, 2])  # tasks learnt before each held-out measurement
@@ -189,7 +190,7 @@ def test_a_run_made_before_the_critic_was_measured_is_reported(run_dir):
 
 def test_the_baseline_is_any_method_of_the_run(run_dir):
     out, raws = run_dir
-    description = report.read_description(str(out))
+    description = rundir.read(str(out))
     loaded, cut = report.read_raws(str(out), description)
     assert cut is None and list(loaded) == ["comps", "ppo_tl"]
     other = report.summarize(description, loaded, baseline="ppo_tl")["significance"]
@@ -200,15 +201,15 @@ def test_the_baseline_is_any_method_of_the_run(run_dir):
 
 def test_without_comps_there_is_no_significance_table_unless_a_baseline_is_named(run_dir):
     out, _ = run_dir
-    description = report.read_description(str(out))
-    description["run"]["methods"], description["methods"] = ["ppo_tl"], {"ppo_tl": {}}
+    description = rundir.read(str(out))
+    description = description.only(["ppo_tl"])
     loaded, _ = report.read_raws(str(out), description)
     results = report.summarize(description, loaded)
     assert "significance" not in results
     table = report.significance_table(results)
     assert table.startswith("No significance table: the run has no `comps`")
     assert "| ppo_tl | " in table and "P(fewer" not in table
-    assert report.grid_table(results) == ""
+    assert report.grid_table(results, description.grid) == ""
 
 
 def test_an_unfinished_run_reports_the_tasks_every_method_has_finished(run_dir):
@@ -225,7 +226,7 @@ def test_an_unfinished_run_reports_the_tasks_every_method_has_finished(run_dir):
     one_task.update({k: v[:, keep, :1] for k, v in one_task.items() if k.startswith("learnt_tasks.")})
     one_task["heldout_after_tasks"] = AFTER[keep]
     _save(out / "raw" / "partial" / "ppo_tl.npz", one_task)
-    description = report.read_description(str(out))
+    description = rundir.read(str(out))
     loaded, cut = report.read_raws(str(out), description, partial=True)
     assert cut == {"tasks": 1, "of": 2, "tasks_done": {"comps": 2, "ppo_tl": 1}}
     assert all(raw.task.iterations.shape == (S, 1) for raw in loaded.values())
@@ -234,20 +235,20 @@ def test_an_unfinished_run_reports_the_tasks_every_method_has_finished(run_dir):
     assert results["methods"]["comps"]["heldout"]["after_tasks"] == [0, 1]
 
 
-def test_read_description_needs_a_run_directory(tmp_path):
-    with pytest.raises(RunError, match="is not a run directory"):
-        report.read_description(str(tmp_path))
+def test_a_directory_without_a_run_is_named(tmp_path):
+    with pytest.raises(RunError, match="holds no run"):
+        report.write(str(tmp_path))
 
 
 def test_the_grid_table_marks_each_methods_best_point():
-    results = {"description": {"grid": [["learning_rate", [0.001, 0.0003]]]}, "seeds": [0, 1],
+    results = {"seeds": [0, 1],
                "best": {"ppo_tl": "ppo_tl[learning_rate=0.0003]"},
                "methods": {f"ppo_tl[learning_rate={v}]": {"method": "ppo_tl", "grid": {"learning_rate": v},
                                                           "overall": {"iterations_to_success_mean": its,
                                                                       "iterations_to_success_se": 0.5,
                                                                       "mean_return": None}}
                            for v, its in ((0.001, 3.0), (0.0003, 2.0))}}
-    lines = report.grid_table(results).splitlines()
+    lines = report.grid_table(results, (grid.Axis("learning_rate", (0.001, 0.0003)),)).splitlines()
     assert lines[2] == "| method | learning_rate | iterations-to-success | mean return | |"
     assert lines[4] == "| ppo_tl | 0.001 | 3.00 ± 0.50 | n/a |  |"
     assert lines[5] == "| ppo_tl | 0.0003 | 2.00 ± 0.50 | n/a | **best** |"

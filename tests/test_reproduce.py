@@ -106,7 +106,7 @@ def test_the_report_and_its_figures(tmp_path):
     assert "# Reproducing the paper on ant_goal (the paper's Ant Goal)" in text
     assert "| ppo_tl |" in text and "| 3.1e-04 |" in text  # the paper's p-value beside ours
     assert "| CoMPS \"solves all of the tasks the fastest\" | L562 | non-stationary | **holds** |" in text
-    paths = reproduction.figures({"non-stationary": r, "stationary": r}, str(tmp_path))
+    paths = reproduction.figures({"non-stationary": r, "stationary": r}, str(tmp_path), "point_goal")
     assert [os.path.basename(p) for p in paths] == ["figure3.png", "lifelong_return.png"]
     assert all(os.path.getsize(p) > 0 for p in paths)
 

@@ -155,6 +155,18 @@ def build_config(cls, args: argparse.Namespace, base=None):
     return _with_options(base, args)
 
 
+def to_json(x):
+    """A config dataclass (or a tuple or mapping of them, or a value) as JSON data: dicts of fields, lists for
+    tuples; ``config_from_dict`` reads it back."""
+    if dataclasses.is_dataclass(x):
+        return {f.name: to_json(getattr(x, f.name)) for f in dataclasses.fields(x)}
+    if isinstance(x, (tuple, list)):
+        return [to_json(v) for v in x]
+    if isinstance(x, dict):
+        return {k: to_json(v) for k, v in x.items()}
+    return x
+
+
 def config_from_dict(base, data: dict, args: Optional[argparse.Namespace] = None):
     """``base`` (a config instance: the method's registered default on the run's family) with the values of its
     ``dataclasses.asdict``-like ``data`` (lists become tuples; fields missing from ``data`` keep ``base``'s value)

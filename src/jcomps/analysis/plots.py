@@ -204,13 +204,14 @@ def _continual_metrics(save: Callable, methods_: dict, tasks) -> None:
     save(fig, "continual_metrics.png")
 
 
-def write(results: dict, raws: dict, directory: str) -> list[str]:
+def write(results: dict, raws: dict, directory: str, description) -> list[str]:
     """Draws every plot of ``results`` (the content of ``results.json``; ``raws``: {entry key: RawResults}, for
-    the lifelong return) into ``directory``, each method at its best grid point in a grid; returns the paths
-    written, in order."""
+    the lifelong return; ``description``: the run's ``RunDescription``) into ``directory``, each method at its best
+    grid point in a grid; returns the paths written, in order."""
     os.makedirs(directory, exist_ok=True)
     written = []
-    title = "{family}, {sequence}, {seeds} seeds".format(**results["description"]["run"])
+    run = description.run
+    title = f"{run.family}, {run.sequence}, {run.seeds} seeds"
     if "best" in results:  # a grid: each method's best point
         title += ", best grid points"
         results = {**results, "methods": {k: results["methods"][k] for k in results["best"].values()}}
@@ -238,7 +239,7 @@ def write(results: dict, raws: dict, directory: str) -> list[str]:
     # One task (or a report cut to one): nothing learnt before it to forget.
     _task_bands(save, "backward_transfer.png", tasks, {k: v for k, v in backward.items() if np.any(np.isfinite(v))},
                 "normalized reward (1: nothing forgotten)",
-                f"Backward transfer on the previous {results['description']['eval']['backward_tasks']} tasks",
+                f"Backward transfer on the previous {description.eval.backward_tasks} tasks",
                 hline=1.0, missing="no earlier tasks to measure")
     _heldout(save, methods_)
     with_critic = {name: m["critic"] for name, m in methods_.items()

@@ -50,7 +50,8 @@ from jcomps.analysis.statistics import BOOTSTRAP_SAMPLES, FT_REFERENCE, IQM_BOOT
 from jcomps.runner import grid as grids
 from jcomps.runner import results as results_
 from jcomps.runner import rundir
-from jcomps.runner.checkpoint import RunError
+from jcomps.runner.description import RunDescription
+from jcomps.runner.files import RunError, write_json
 
 
 def _curves(values: np.ndarray, valid: np.ndarray) -> list:
@@ -63,11 +64,6 @@ def _json_float(x):
     return None if x is None or not np.isfinite(x) else float(x)
 
 
-def _entries(description: dict) -> list:
-    classes = {m: methods.config_class(m) for m in description["run"]["methods"]}
-    return grids.entries(description, classes)
-
-
 def _jsonable_value(v):
     return list(v) if isinstance(v, tuple) else v
 
@@ -77,25 +73,28 @@ def default_baseline(methods_run) -> Optional[str]:
     return "comps" if "comps" in methods_run else None
 
 
-def env_steps(description: dict, family, method: str, values: Optional[dict]) -> tuple[int, int]:
-    """Env steps one iteration of ``method`` collects in the run ``description`` on its ``family`` (at grid point
-    ``values``), those a solved task costs beyond its counted iterations (``Method.env_steps_per_task``) and those
-    every task costs before its first iteration (``Method.env_steps_before_task``)."""
-    config = methods.resolve_config(method, family, stored=description["methods"][method])
-    for field, value in (values or {}).items():
-        config = grids.replace_flat(config, field, value)
-    built = methods.make(method, family, config)  # once: it holds both figures
+def check_baseline(baseline: Optional[str], methods_run) -> None:
+    """ValueError naming ``--baseline`` unless it is None or one of the run's methods ``methods_run``."""
+    if baseline is not None and baseline not in methods_run:
+        raise ValueError(f"--baseline {baseline}: not a method of this run; its methods: {', '.join(methods_run)}")
+
+
+def env_steps(description: RunDescription, method: str, values: Optional[dict]) -> tuple[int, int, int]:
+    """Env steps one iteration of ``method`` collects in the run ``description`` (at grid point ``values``), those
+    a solved task costs beyond its counted iterations (``Method.env_steps_per_task``) and those every task costs
+    before its first iteration (``Method.env_steps_before_task``)."""
+    built = methods.make(method, description.family, description.config(method, values))  # once: it holds all three
     return methods.base.env_steps_per_iteration(built), built.env_steps_per_task, built.env_steps_before_task
 
 
-def summarize(description: dict, raws: dict, baseline: Optional[str] = None) -> dict:
+def summarize(description: RunDescription, raws: dict, baseline: Optional[str] = None) -> dict:
     """The content of ``results.json`` (``raws``: {entry key: RawResults}); the significance table compares
     ``baseline`` (a method of the run; default ``default_baseline``) with every other method."""
-    run = description["run"]
-    seeds = list(range(run["seed"], run["seed"] + run["seeds"]))
-    results = {"description": description, "seeds": seeds, "methods": {}}
-    entries = _entries(description)
-    family = envs.make(run["family"])
+    run = description.run
+    seeds = run.seed_list
+    results = {"description": description.to_json(), "seeds": seeds, "methods": {}}
+    entries = description.entries()
+    family = description.family
     overall_its, overall_ret = {}, {}
     # Every method's AUC over one horizon and performance profile over one τ grid: the longest budget of the run.
     horizon = max(raws[name].task.per_iteration.valid.shape[-1] for _, name, _ in entries)
@@ -109,7 +108,7 @@ def summarize(description: dict, raws: dict, baseline: Optional[str] = None) -> 
         mean, se = mean_se(its)
         bt = statistics.backward_transfer(ret, valid, raw.backward_returns, raw.backward_valid)
         h_ret = raw.heldout.mean_return.mean(axis=2)  # [seeds, points, iterations + 1], averaged over tasks
-        steps, task_steps, before_steps = env_steps(description, family, method, values)
+        steps, task_steps, before_steps = env_steps(description, method, values)
         # Samples-to-success per seed and task: MAML+TL's iterations collect two batches, PPO's one; PNC's solved
         # tasks add their compress phase (an unsolved task's budget count includes it already); PEARL's every task
         # its initial prior-z collection.
@@ -139,7 +138,7 @@ def summarize(description: dict, raws: dict, baseline: Optional[str] = None) -> 
                 "iterations_to_success": raw.heldout.iterations.astype(int).tolist(),
                 "iterations_to_success_mean": raw.heldout.iterations.mean(axis=2).round(3).tolist(),
                 "solved": raw.heldout.solved.astype(bool).tolist(),
-                "budget": int(description["eval"].get("heldout_budget", 0)),
+                "budget": int(description.eval.heldout_budget or 0),
             },
             "iqm": [{"tasks": list(r), **statistics.iqm_ci(its[:, r[0] - 1:r[1]])}
                     for r in statistics.sequence_halves(its.shape[1])],
@@ -162,28 +161,28 @@ def summarize(description: dict, raws: dict, baseline: Optional[str] = None) -> 
                           "overall": {"iterations_to_success_mean": _json_float(m_its),
                                       "iterations_to_success_se": _json_float(se_its),
                                       "mean_return": _json_float(overall_ret[name])}})
-    best = {m: m for m in run["methods"]}
-    if "grid" in description:
+    best = {m: m for m in run.methods}
+    if description.grid:
         best = grids.best(entries, overall_its, overall_ret)
         results["best"] = best
-    baseline = baseline or default_baseline(run["methods"])
-    if baseline is not None and baseline not in run["methods"]:
-        raise RunError(f"--baseline {baseline}: not a method of this run; its methods: "
-                                  f"{', '.join(run['methods'])}")
+    baseline = baseline or default_baseline(run.methods)
+    try:
+        check_baseline(baseline, run.methods)
+    except ValueError as err:
+        raise RunError(str(err)) from None
     if baseline is not None:
         base = raws[best[baseline]].task.iterations.mean(axis=1)
         results["significance"] = {
             "baseline": best[baseline],
             "statistic": "per-seed mean iterations-to-success over the sequence"
-                         + (", each method at its best grid point" if "grid" in description else ""),
+                         + (", each method at its best grid point" if description.grid else ""),
             "against": {best[m]: statistics.significance(base, raws[best[m]].task.iterations.mean(axis=1))
-                        for m in run["methods"] if m != baseline}}
+                        for m in run.methods if m != baseline}}
         results["significance"]["probability_of_improvement"] = {
             best[m]: probability_of_improvement(raws[best[m]], raws[best[baseline]], best[baseline])
-            for m in run["methods"] if m != baseline}
+            for m in run.methods if m != baseline}
     reference = best.get(FT_REFERENCE)
-    ids = np.stack([envs.sequence_values(family, run["sequence"], s, run["num_tasks"], run.get("tasks"))
-                    for s in seeds])
+    ids = np.stack([envs.sequence_values(family, run.sequence, s, run.num_tasks, run.tasks) for s in seeds])
     for _, name, _ in entries:
         results["methods"][name]["forward_transfer"] = forward_transfer_summary(
             raws[name], None if reference is None else raws[reference], reference, ids, horizon)
@@ -408,12 +407,12 @@ def field_table(results: dict, entries: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def grid_table(results: dict) -> str:
-    """Markdown table of every grid point: mean iterations-to-success ± s.e. and mean return, best marked."""
-    grid = results["description"].get("grid")
+def grid_table(results: dict, grid: grids.Grid) -> str:
+    """Markdown table of every grid point of ``grid`` (the run's): mean iterations-to-success ± s.e. and mean
+    return, best marked."""
     if not grid:
         return ""
-    fields = [field for field, _ in grid]
+    fields = [axis.field for axis in grid]
     best = set(results.get("best", {}).values())
     seeds = len(results["seeds"])
     fmt = lambda v: "n/a" if v is None else f"{v:.2f}"  # noqa: E731
@@ -432,21 +431,13 @@ def grid_table(results: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def read_description(out: str) -> dict:
-    """The ``run.json`` of run directory ``out``; RunError if it has none."""
-    run_json = os.path.join(out, "run.json")
-    if not os.path.isfile(run_json):
-        raise RunError(f"{out} is not a run directory (no run.json)")
-    return rundir.read_json(run_json)
-
-
-def read_raws(out: str, description: dict, partial: bool = False) -> tuple[dict, Optional[dict]]:
+def read_raws(out: str, description: RunDescription, partial: bool = False) -> tuple[dict, Optional[dict]]:
     """{entry key: RawResults} of run directory ``out``, and None. With ``partial``, an unfinished entry
     contributes the tasks it has finished (``raw/partial/``), every entry is cut to the tasks all of them have
     finished, and the second value says so: {"tasks": k, "of": N, "tasks_done": {entry: tasks}} (None when every
     entry has finished). RunError names an entry with nothing to report."""
     raws, done = {}, {}
-    for method, name, _ in _entries(description):
+    for _, name, _ in description.entries():
         raw = results_.load(out, name)
         if raw is None and partial:
             raw = results_.load_partial(out, name)
@@ -456,7 +447,7 @@ def read_raws(out: str, description: dict, partial: bool = False) -> tuple[dict,
             raise RunError(f"{out}: {name} has not finished; continue the run with --resume, or report "
                            "the tasks every method has finished with --partial")
         raws[name], done[name] = raw, results_.tasks_done(raw)
-    num_tasks = int(description["run"]["num_tasks"])
+    num_tasks = description.run.num_tasks
     common = min(done.values())
     if common == num_tasks:
         return raws, None
@@ -468,14 +459,15 @@ def write(out: str, baseline: Optional[str] = None, partial: bool = False) -> Op
     """(Re)writes ``results.json``, the plots and ``significance.md`` of run directory ``out``; the significance
     table compares ``baseline`` (default: ``comps`` when the run has it) with every other method. With
     ``partial`` an unfinished run is reported on the tasks all its entries have finished (``read_raws``)."""
-    description = read_description(out)
+    description = rundir.read(out)
     raws, cut = read_raws(out, description, partial)
     results = summarize(description, raws, baseline)
     if cut is not None:
         results["partial"] = cut
-    results["plots"] = [os.path.relpath(p, out) for p in plots.write(results, raws, os.path.join(out, "plots"))]
-    rundir.write_json(os.path.join(out, "results.json"), results)
-    table = grid_table(results)
+    results["plots"] = [os.path.relpath(p, out)
+                        for p in plots.write(results, raws, os.path.join(out, "plots"), description)]
+    write_json(os.path.join(out, "results.json"), results)
+    table = grid_table(results, description.grid)
     head = "" if cut is None else (
         f"Unfinished run: tasks 1-{cut['tasks']} of {cut['of']}, the tasks every method has finished (tasks done: "
         + ", ".join(f"{name} {k}" for name, k in cut["tasks_done"].items()) + ").\n\n")

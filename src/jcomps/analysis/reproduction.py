@@ -301,10 +301,10 @@ def markdown(family: str, proto: Protocol, results_by_sequence: dict, partial: O
     return "\n".join(lines) + "\n"
 
 
-def figures(results_by_sequence: dict, directory: str) -> list[str]:
+def figures(results_by_sequence: dict, directory: str, family: str) -> list[str]:
     """The Figure-3 panel (iterations to success per task, per method, mean ± s.e., one panel per sequence) and
     the lifelong-return panel (every iteration's return over the sequence, the mean of 5 consecutive iterations,
-    averaged over the seeds while all run, with ± s.e.) into ``directory``; returns the paths."""
+    averaged over the seeds while all run, with ± s.e.) of ``family`` into ``directory``; returns the paths."""
     from matplotlib.figure import Figure
     from matplotlib.ticker import MaxNLocator
 
@@ -327,7 +327,7 @@ def figures(results_by_sequence: dict, directory: str) -> list[str]:
             ax.errorbar(np.arange(1, its.shape[1] + 1), mean, yerr=se, marker="o", ms=3, capsize=2, color=f"C{k}",
                         label=name)
         ax.set(xlabel="task i", ylabel="iterations to success (fewer is better)",
-               title=f"{results['description']['run']['family']}, {sequence}")
+               title=f"{family}, {sequence}")
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.legend(fontsize=8)
     save(fig, "figure3.png")

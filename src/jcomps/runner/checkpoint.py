@@ -23,10 +23,7 @@ import jax
 import numpy as np
 
 from jcomps.runner import distributed
-
-
-class RunError(ValueError):
-    """A run directory or its options cannot be used as asked (the runner turns it into exit code 2)."""
+from jcomps.runner.files import RunError
 
 
 def flatten(tree) -> dict:

@@ -21,12 +21,11 @@ same programs from the restored state, a resumed run gives per-task results iden
 Nothing here prints: the outside world gets events through one ``progress_fn`` callback (``ProgressReceiver``;
 ``experiments/progress.py`` turns them into progress lines and TensorBoard logs). Compiled programs live in a
 ``Programs`` cache owned by the caller, never in a module-level registry, so two runs never share progress.
-``RunError`` (``jcomps.runner.checkpoint``) is what ``run`` raises for a run directory it cannot make or resume.
+``RunError`` (``jcomps.runner.files``) is what ``run`` raises for a run directory it cannot make or resume.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import os
 import time
@@ -37,62 +36,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from jcomps import continual, envs, methods, progress
-from jcomps.numerics import check_field, check_finite_fields
 from jcomps.runner import distributed, results
 from jcomps.runner import grid as grids
-from jcomps.runner.checkpoint import Checkpoints, RunError, record, unflatten  # noqa: F401 - RunError: what run raises
+from jcomps.runner.checkpoint import Checkpoints, record, unflatten
+from jcomps.runner.description import RunDescription
+from jcomps.runner.files import RunError  # noqa: F401 - what run raises
 from jcomps.runner.members import eval_keys, layout, method_keys, num_devices, task_sequences
 from jcomps.runner.programs import PART_NAMES, Programs
-from jcomps.runner.rundir import describe, open_run_dir
-
-
-@dataclasses.dataclass(frozen=True)
-class RunConfig:
-    """What a run learns: the family, the sequence, the methods and the seeds."""
-
-    family: str = "point_goal"
-    """Task family (one of ``jcomps.envs.names()``)."""
-    sequence: str = "non-stationary"
-    """``non-stationary`` (the paper's order) or ``stationary`` (the same list shuffled by seed)."""
-    methods: tuple[str, ...] = ("comps", "ppo_tl")
-    """Methods to run, one compiled program each."""
-    seeds: int = 4
-    """Number of seeds (a vmap axis, sharded over devices)."""
-    seed: int = 0
-    """The first seed; seeds are seed, seed + 1, ..."""
-    num_tasks: int = 6
-    """Length of the sequence (a prefix of the family's list, shuffled per seed if stationary)."""
-    tasks: tuple[str, ...] = ()
-    """Chosen tasks, in the family's own terms, instead of the family's list (then ``num_tasks`` is their number):
-    MetaWorld P-3, B-1, H-11 (or codes), goal velocities in m/s on Half-Cheetah, angles in degrees on Point Goal
-    and the Ants. Every seed learns them in this order (``stationary``: shuffled by the seed)."""
-    chunk_tasks: int = 2
-    """Tasks per compiled chunk; a checkpoint is written after every chunk."""
-
-    def __post_init__(self):
-        check_finite_fields(self)
-        check_field(self.family in envs.names(), "family", self.family, ", ".join(envs.names()))
-        check_field(self.sequence in envs.SEQUENCE_KINDS, "sequence", self.sequence, ", ".join(envs.SEQUENCE_KINDS))
-        check_field(len(self.methods) >= 1 and len(set(self.methods)) == len(self.methods), "methods", self.methods,
-                    "one or more distinct method names")
-        for name in self.methods:
-            check_field(name in methods.names(), "methods", name, ", ".join(methods.names()))
-        check_field(self.seeds >= 1, "seeds", self.seeds, "an integer >= 1")
-        check_field(self.seed >= 0, "seed", self.seed, "an integer >= 0")
-        check_field(self.num_tasks >= 1, "num_tasks", self.num_tasks, "an integer >= 1")
-        if self.tasks:
-            check_field(self.num_tasks == len(self.tasks), "num_tasks", self.num_tasks,
-                        f"the number of tasks given ({len(self.tasks)}; the command line sets it when "
-                        f"--num-tasks is left out)")
-            family = envs.make(self.family)
-            try:
-                family.parse_values(self.tasks)
-            except ValueError as err:
-                raise ValueError(f"tasks: {err}") from None
-            # kept by canonical name, so that "10.0" and "10", or "102" and "B-2", are one run (resume, merge)
-            object.__setattr__(self, "tasks", tuple(family.task_name(family.parse_value(t)) for t in self.tasks))
-        check_field(self.chunk_tasks >= 1, "chunk_tasks", self.chunk_tasks, "an integer >= 1")
-
+from jcomps.runner.rundir import open_run_dir
 
 # The kinds of event the runner hands its ``ProgressReceiver`` (``event["event"]``); ``ProgressReceiver`` says
 # what each carries. The runner's own:
@@ -152,42 +103,40 @@ def _silent(event: dict) -> None:
     del event
 
 
-def run(out: str, run_config: RunConfig, eval_config: continual.EvalConfig, method_configs: dict,
-        resume: bool = False, progress_fn: ProgressReceiver = _silent, grid: grids.Grid = (),
-        overrides: Optional[dict] = None, programs: Optional[Programs] = None) -> dict:
-    """Runs every method of ``run_config`` into ``out`` (resuming where it stopped), each at every point of the
-    hyperparameter ``grid`` (``jcomps.runner.grid``; empty: no grid); returns RawResults by results entry key. Events go
-    to ``progress_fn`` (``ProgressReceiver``); compiled programs are kept in ``programs`` (default: a fresh cache)."""
-    eval_config = eval_config.resolve(run_config.family)
-    open_run_dir(out, describe(run_config, eval_config, method_configs, grid, overrides), resume)
+def run(out: str, description: RunDescription, resume: bool = False, progress_fn: ProgressReceiver = _silent,
+        programs: Optional[Programs] = None) -> dict:
+    """Runs every method of ``description`` into ``out`` (resuming where it stopped), each at every point of its
+    hyperparameter grid (``jcomps.runner.grid``); returns RawResults by results entry key. Events go to
+    ``progress_fn`` (``ProgressReceiver``); compiled programs are kept in ``programs`` (default: a fresh cache)."""
+    open_run_dir(out, description, resume)
     programs = Programs() if programs is None else programs
     raws = {}
-    for name in run_config.methods:
-        for spec in grids.programs(name, method_configs[name], grid):
+    for name in description.run.methods:
+        for spec in description.programs(name):
             done = {p.key: results.load(out, p.key) for p in spec.points} if resume else {}
             finished = bool(done) and all(raw is not None for raw in done.values())
             if distributed.all_agree(finished, "deciding what is left to run"):  # every process skips it, or none
                 progress_fn({"event": SKIPPED, "program": spec.label})
             else:
-                done = run_program(out, spec, run_config, eval_config, resume, progress_fn, programs)
+                done = run_program(out, spec, description, resume, progress_fn, programs)
             raws.update(done)
     return raws
 
 
-def run_method(out: str, name: str, run: RunConfig, eval_config: continual.EvalConfig, config, resume: bool,
+def run_method(out: str, name: str, description: RunDescription, resume: bool,
                progress_fn: ProgressReceiver = _silent, programs: Optional[Programs] = None,
                stop_after_chunks: Optional[int] = None) -> Optional[results.RawResults]:
-    """Runs (or resumes) one method's sequence, without a grid; returns its raw results when the sequence is
-    done.
+    """Runs (or resumes) method ``name`` of ``description`` (a run without a grid) in a run directory already
+    opened (``jcomps.runner.rundir.open_run_dir``); returns its raw results when the sequence is done.
 
     ``stop_after_chunks`` (tests) returns None after that many chunks of this call, as if killed.
     """
-    spec, = grids.programs(name, config, ())
-    raws = run_program(out, spec, run, eval_config, resume, progress_fn, programs, stop_after_chunks)
+    spec, = description.programs(name)
+    raws = run_program(out, spec, description, resume, progress_fn, programs, stop_after_chunks)
     return None if raws is None else raws[name]
 
 
-def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: continual.EvalConfig, resume: bool,
+def run_program(out: str, spec: grids.ProgramSpec, description: RunDescription, resume: bool,
                 progress_fn: ProgressReceiver = _silent, programs: Optional[Programs] = None,
                 stop_after_chunks: Optional[int] = None) -> Optional[dict]:
     """Runs (or resumes) one program (``jcomps.runner.grid.programs``): its grid points × the seeds as one set of
@@ -197,7 +146,7 @@ def run_program(out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: 
     whatever its grid point. ``programs`` holds the compiled programs (default: a fresh cache).
     ``stop_after_chunks`` (tests) returns None after that many chunks of this call, as if killed.
     """
-    job = _ProgramRun(out, spec, run, eval_config, progress_fn, Programs() if programs is None else programs)
+    job = _ProgramRun(out, spec, description, progress_fn, Programs() if programs is None else programs)
     states = job.open(resume)
     job.program.receiver = job.receive
     try:
@@ -225,11 +174,12 @@ class _ProgramRun:
     Evaluation of the learnt tasks) [members, num_chunks + 1, ...], measured at the start and after every chunk.
     """
 
-    def __init__(self, out: str, spec: grids.ProgramSpec, run: RunConfig, eval_config: continual.EvalConfig,
-                 progress_fn: ProgressReceiver, programs: Programs):
+    def __init__(self, out: str, spec: grids.ProgramSpec, description: RunDescription, progress_fn: ProgressReceiver,
+                 programs: Programs):
+        run = description.run
         self.out, self.spec, self.run, self.progress_fn = out, spec, run, progress_fn
-        self.family = envs.make(run.family)
-        self.eval_config = eval_config.resolve(run.family)
+        self.family = description.family
+        self.eval_config = description.eval
         self.points = spec.points
         real = len(self.points) * run.seeds
         self.devices = num_devices(real)

@@ -251,20 +251,6 @@ def programs(method: str, base, grid: Grid) -> list:
     return out
 
 
-def entries(description: dict, classes: dict) -> list:
-    """(method, key, values dict or None) of every results entry of a run description (``run.json``): one per
-    method without a grid, one per method and grid point with one."""
-    if "grid" not in description:
-        return [(m, m, None) for m in description["run"]["methods"]]
-    grid = from_json(description["grid"], classes)
-    out = []
-    for m in description["run"]["methods"]:
-        fields = {name for name, *_ in configs.flat_fields(classes[m])}
-        for values in point_values(fields, grid):
-            out.append((m, key(m, values), dict(values)))
-    return out
-
-
 def best(entries_: list, iterations: dict, returns: dict) -> dict:
     """{method: key} of each method's best entry: the lowest mean iterations-to-success, ties broken by the
     higher mean return (``iterations`` and ``returns``: {key: mean}); NaN counts as worst."""

@@ -18,7 +18,7 @@ import numpy as np
 
 from jcomps.continual import Evaluation, HeldoutMetrics
 from jcomps.methods.base import TaskMetrics
-from jcomps.runner.checkpoint import RunError
+from jcomps.runner.files import RunError
 
 
 class RawResults(NamedTuple):
