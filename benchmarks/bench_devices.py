@@ -36,12 +36,12 @@ keys = program.put(jax.vmap(jax.random.PRNGKey)(jnp.asarray(seeds)))
 idx = program.put(np.arange(len(seeds), dtype=np.int32))
 states = program.init(keys)
 t0 = time.perf_counter()
-jax.block_until_ready(program.run_chunk(states, seqs, jnp.int32(0), keys, idx))
+jax.block_until_ready(program.learn_chunk(states, seqs, 0, program.chunk, keys, idx))
 compile_s = time.perf_counter() - t0
 times, steps = [], 0
 for _ in range(a["repeats"]):
     t0 = time.perf_counter()
-    _, m = jax.block_until_ready(program.run_chunk(states, seqs, jnp.int32(0), keys, idx))
+    _, m = jax.block_until_ready(program.learn_chunk(states, seqs, 0, program.chunk, keys, idx))
     times.append(time.perf_counter() - t0)
     steps = int(np.sum(np.asarray(m.task.iterations))) * config.ppo.num_trajectories * family.max_steps
 print(json.dumps({"devices": devices, "steps": steps, "seconds": min(times), "first_call_s": compile_s}))

@@ -68,7 +68,7 @@ def child(argv):
     states = program.init(host_keys)
 
     def chunk():
-        _, metrics = program.run_chunk(states, seqs, 0, keys, idx)
+        _, metrics = program.learn_chunk(states, seqs, 0, program.chunk, keys, idx)
         return distributed.gather(metrics)  # on every process, as the runner's host loop needs them
 
     t0 = time.perf_counter()

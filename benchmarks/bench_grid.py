@@ -70,9 +70,9 @@ def main():
         keys = jax.vmap(jax.random.PRNGKey)(jnp.asarray(member_seed))
         idx = program.put(np.arange(len(member_seed), dtype=np.int32))
         states = program.init(keys, hparams)
-        inputs = (states, seqs, jnp.int32(0), program.put(keys), idx, program.put(hparams))
+        inputs = (states, seqs, 0, program.chunk, program.put(keys), idx, program.put(hparams))
         t0 = time.perf_counter()
-        jax.block_until_ready(program.run_chunk(*inputs))
+        jax.block_until_ready(program.learn_chunk(*inputs))
         prepared[case] = (spec, seeds, real, devices, program, inputs, time.perf_counter() - t0)
     # The cases take turns, so that a drift of the machine's speed touches both alike.
     times = {case: [] for case in prepared}
@@ -80,7 +80,7 @@ def main():
     for _ in range(args.repeats):
         for case, (_, _, _, _, program, inputs, _) in prepared.items():
             t0 = time.perf_counter()
-            _, metrics[case] = jax.block_until_ready(program.run_chunk(*inputs))
+            _, metrics[case] = jax.block_until_ready(program.learn_chunk(*inputs))
             times[case].append(time.perf_counter() - t0)
     rates = {}
     for case, (spec, seeds, real, devices, _, _, first_call) in prepared.items():

@@ -13,8 +13,8 @@ every method runs it, on ``workers`` processes (the caller's included):
 Each ``workers`` case is compared with raw stepping on as many fresh processes, each replaying its share of the
 batch (started together after their set-up, timed by the slowest), so ``ratio`` is our cost against the
 simulator's at equal parallelism (goal >= 0.9). Fresh processes for raw stepping, because our workers are light
-processes too: MetaWorld steps 5-10% slower in a process that has imported JAX (docs/design.md). One ``key=value`` line
-per case::
+processes too: MetaWorld steps 5-10% slower in a process that has imported JAX (docs/log.md, "MetaWorld on the host").
+One ``key=value`` line per case::
 
     python benchmarks/bench_metaworld.py [--envs 0 1 2] [--batch 20] [--workers 1 2] [--paths rollout step]
 """

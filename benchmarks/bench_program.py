@@ -42,7 +42,6 @@ def bench(family_name: str, method: str, members: int, tasks: int, budget: int, 
           parts: bool = True, compile_only: bool = False, wait_for: str | None = None,
           signal: str | None = None) -> str:
     import jax
-    import jax.numpy as jnp
     import numpy as np
 
     from jcomps import continual, envs, methods
@@ -64,7 +63,7 @@ def bench(family_name: str, method: str, members: int, tasks: int, budget: int, 
     keys = program.put(eval_keys(seeds, 1))
     idx = program.put(np.arange(members, dtype=np.int32))
     states = program.init(method_keys(seeds))
-    chunk_args = (states, seqs, jnp.int32(0), keys, idx)
+    chunk_args = (states, seqs, 0, program.chunk, keys, idx)
 
     # The simulator alone, and the two parts of an iteration, on the same members and batch.
     task = envs.task_at(family, 0)
@@ -85,7 +84,7 @@ def bench(family_name: str, method: str, members: int, tasks: int, budget: int, 
     update = jax.jit(jax.vmap(lambda p, o, tr, k: ppo.ppo_update(config.ppo, optimizer, p, o, tr, k)[:3]))
     traj = jax.block_until_ready(roll(params, member_keys)) if parts else None
 
-    cases = {"raw": (raw, (jax.random.PRNGKey(2), actions)), "program": (program.run_chunk, chunk_args)}
+    cases = {"raw": (raw, (jax.random.PRNGKey(2), actions)), "program": (program.learn_chunk, chunk_args)}
     if parts:
         cases.update(rollout=(roll, (params, member_keys)), update=(update, (params, opt_state, traj, member_keys)))
     first = {name: _seconds(fn, *args)[0] for name, (fn, args) in cases.items()}

@@ -192,7 +192,7 @@ class Console:
                                        self.log, self.interval, event["members"] if points > 1 else None)
 
     def _compiling(self, name, event):
-        after = " (while the first task trains)" if event["part"] in ("evaluate_task", "heldout") else ""
+        after = " (while the first task trains)" if event["part"] in ("evaluate_task", "measure") else ""
         self.log(f"[{name}] compiling the {event['what']} program ({event['family']}, {event['method']}){after}...")
 
     def _still_compiling(self, name, event):

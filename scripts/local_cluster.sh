@@ -43,7 +43,7 @@ if [[ "$script" == */run_sequence.py ]] && ! printf '%s\n' "$@" | grep -qE -- '^
 fi
 
 port=${JCOMPS_PORT:-$("$PYTHON" -c 'import socket; s = socket.socket(); s.bind(("localhost", 0)); print(s.getsockname()[1])')}
-cores=$("$PYTHON" -c 'from jcomps import hostdevices; print(hostdevices.cores())')
+cores=$("$PYTHON" -c 'from jcomps.runner import hostdevices; print(hostdevices.cores())')
 # Each process sizes XLA:CPU's thread pool as one process with all N processes' devices would (jcomps.runner.hostdevices).
 export JCOMPS_LOCAL_PROCESSES=$N
 # MetaWorld's stepping workers: each process its share of the cores (the processes are not pinned to cores: XLA

@@ -99,16 +99,21 @@ MAML_PPO = dataclasses.replace(TINY_PPO, budget=2)
 
 @pytest.fixture(scope="module")
 def maml_chunk():
-    """MAML+TL after two Point Goal tasks through ``continual.run_chunk`` (backward transfer on the previous
-    task): (method, eval key, sequence, final state, ChunkMetrics)."""
+    """MAML+TL after two Point Goal tasks as the runner learns them, each task then its evaluations
+    (``continual.learn_at``, ``continual.evaluate_task``, backward transfer on the previous task): (method, eval
+    key, sequence, final state, ChunkMetrics [2])."""
     family = envs.make("point_goal")
     method = methods.make("maml_tl", family, maml_tl.MAMLTLConfig(ppo=MAML_PPO))
     seq = envs.sequence(family, num_tasks=2)
     key = jax.random.PRNGKey(5)
-    run = jax.jit(lambda s, k: continual.run_chunk(method, continual.EvalConfig(backward_tasks=1), s, seq,
-                                                   jnp.int32(0), 2, k))
-    state, metrics = run(method.init(jax.random.PRNGKey(0)), key)
-    return method, key, seq, state, metrics
+    learn = jax.jit(lambda s, i: continual.learn_at(method, s, seq, i))
+    evaluate = jax.jit(lambda s, i: continual.evaluate_task(method, continual.EvalConfig(backward_tasks=1), s, seq,
+                                                            i, key))
+    state, per_task = method.init(jax.random.PRNGKey(0)), []
+    for i in range(2):
+        state, learnt = learn(state, jnp.int32(i))
+        per_task.append(continual.chunk_metrics(learnt, evaluate(state, jnp.int32(i))))
+    return method, key, seq, state, jax.tree.map(lambda *x: jnp.stack(x), *per_task)
 
 
 def _task(seq, i):
@@ -145,7 +150,7 @@ def test_maml_policy_for_is_the_inner_step_on_fresh_episodes_of_the_task(maml_ch
 
 
 def test_maml_backward_transfer_evaluates_the_adapted_policy(maml_chunk):
-    """After task 1 the policy is evaluated on task 0 (``run_chunk``'s keys: fold_in(fold_in(key, 1), 0) for
+    """After task 1 the policy is evaluated on task 0 (``evaluate_task``'s keys: fold_in(fold_in(key, 1), 0) for
     the rollout, its fold_in 7 for ``policy_for``): φ's return, not θ's."""
     method, eval_key, seq, state, metrics = maml_chunk
     assert np.asarray(metrics.backward_valid).tolist() == [[False], [True]]

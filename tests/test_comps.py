@@ -208,8 +208,7 @@ def test_learning_past_max_tasks_is_refused():
     with pytest.raises(ValueError, match="max_tasks=2"):
         continual.run_sequence(method, envs.sequence(family, num_tasks=3), jax.random.PRNGKey(0))
     with pytest.raises(ValueError, match="max_tasks=2"):
-        continual.run_chunk(method, continual.EvalConfig(), method.init(jax.random.PRNGKey(0)),
-                            envs.sequence(family, num_tasks=3), 0, 1, jax.random.PRNGKey(1))
+        continual.learn_at(method, method.init(jax.random.PRNGKey(0)), envs.sequence(family, num_tasks=3), 0)
     full = method.init(jax.random.PRNGKey(0))._replace(task_index=jax.numpy.int32(2))
     with pytest.raises(ValueError, match="past max_tasks=2"):
         method.learn_task(full, envs.task_at(family, 0))

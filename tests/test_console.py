@@ -62,8 +62,8 @@ def test_console_says_what_compiles_and_evaluates(console, tmp_path):
     show({"event": "still_compiling", "part": "learn", "what": "learning", "seconds": 20.5, **where})
     show({"event": "compiled", "part": "learn", "what": "learning", "seconds": 95.0, "trace_seconds": 12.0,
           **where})
-    show({"event": "compiling", "part": "heldout", "what": "held-out", **where})
-    show({"event": "compiled", "part": "heldout", "what": "held-out", "seconds": 13.5, "trace_seconds": 12.0,
+    show({"event": "compiling", "part": "measure", "what": "held-out", **where})
+    show({"event": "compiled", "part": "measure", "what": "held-out", "seconds": 13.5, "trace_seconds": 12.0,
           "cached": True, **where})
     show({"event": "evaluating", "program": "comps", "after_tasks": 0, "learnt": 0})
     show({"event": "heldout_iteration", "program": "comps", "member": 1, "heldout_task": 7, "heldout_iteration": 3,

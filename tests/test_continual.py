@@ -74,7 +74,7 @@ def test_unknown_method_and_wrong_config():
 
 
 def test_a_method_that_never_changes_its_policy_forgets_nothing(family):
-    """The learnt tasks' evaluations (right after each task in ``run_chunk``, at the end in ``learnt_tasks``) use
+    """The learnt tasks' evaluations (right after each task in ``evaluate_task``, at the end in ``learnt_tasks``) use
     the same episodes of each task, so a method whose learning leaves the policy as it was scores exactly the same
     both times: zero forgetting, not zero on average."""
     from jcomps.analysis import continual_metrics
@@ -92,7 +92,13 @@ def test_a_method_that_never_changes_its_policy_forgets_nothing(family):
     method = method._replace(learn_task=frozen)
     config = continual.EvalConfig(backward_tasks=1, learnt_episodes=3)
     key = jax.random.PRNGKey(7)
-    end, chunk = jax.jit(lambda s: continual.run_chunk(method, config, s, seq, 0, 3, key))(state)
+    learn = jax.jit(lambda s, i: continual.learn_at(method, s, seq, i))
+    evaluate_task = jax.jit(lambda s, i: continual.evaluate_task(method, config, s, seq, i, key))
+    end, per_task = state, []
+    for i in range(3):  # as the runner's chunk of three tasks
+        end, metrics = learn(end, i)
+        per_task.append(continual.chunk_metrics(metrics, evaluate_task(end, i)))
+    chunk = jax.tree.map(lambda *x: jnp.stack(x), *per_task)
     evaluate = jax.jit(lambda s, n: continual.learnt_tasks(method, config, s, seq, n, key))
     final = evaluate(end, 3)
     chex.assert_shape(final.mean_return, (3,))

@@ -14,6 +14,7 @@ import pytest
 from jcomps import continual
 from jcomps.analysis import report
 from jcomps.runner import checkpoint, experiment, results, rundir
+from jcomps.runner.files import RunError
 
 
 def _raw(out, name):
@@ -90,7 +91,7 @@ def test_results_schema(full_run):
 
 def test_learnt_tasks_are_evaluated_with_the_episodes_they_had_when_learnt(full_run):
     """After every chunk (one task here) the policy is evaluated on every task learnt: on the task just learnt it
-    is the policy that ``run_chunk`` evaluated right after learning it, on the same episodes (another compiled
+    is the policy that ``evaluate_task`` evaluated right after learning it, on the same episodes (another compiled
     program, the same numbers), so that task's forgetting is 0."""
     for name in ("comps", "ppo_tl"):
         raw = results.load(str(full_run), name)
@@ -154,7 +155,7 @@ def test_report_regenerates_the_results(full_run, tmp_path):
     assert other["baseline"] == "ppo_tl" and list(other["against"]) == ["comps"]
     assert other["against"]["comps"]["mean_a"] == a["significance"]["against"]["ppo_tl"]["mean_b"]
     assert "| ppo_tl vs |" in (copy / "significance.md").read_text()
-    with pytest.raises(experiment.RunError, match="--baseline gmps: not a method of this run; its methods: comps"):
+    with pytest.raises(RunError, match="--baseline gmps: not a method of this run; its methods: comps"):
         report.write(str(copy), baseline="gmps")
 
 
@@ -166,7 +167,7 @@ def test_a_stopped_run_reports_the_tasks_every_method_has_finished(runner, merge
     for name, chunks in (("comps", 2), ("ppo_tl", 1)):  # stopped after 2 and 1 of the 3 tasks
         experiment.run_method(str(out), name, described, resume=False,
                               programs=runner.PROGRAMS, stop_after_chunks=chunks)
-    with pytest.raises(experiment.RunError, match="comps has not finished; .* with --partial"):
+    with pytest.raises(RunError, match="comps has not finished; .* with --partial"):
         report.write(str(out))
     got = report.write(str(out), partial=True)
     assert got["partial"] == {"tasks": 1, "of": 3, "tasks_done": {"comps": 2, "ppo_tl": 1}}
@@ -178,13 +179,13 @@ def test_a_stopped_run_reports_the_tasks_every_method_has_finished(runner, merge
         assert mine["heldout"]["adapted_return"] == [row[:2] for row in theirs["heldout"]["adapted_return"]]
     assert (out / "significance.md").read_text().startswith("Unfinished run: tasks 1-1 of 3")
     # Merged with --partial, the same report; without it, the merge says what to do.
-    with pytest.raises(experiment.RunError, match="comps has not finished; .* --partial"):
+    with pytest.raises(RunError, match="comps has not finished; .* --partial"):
         merge_runs.merge(str(tmp_path / "m"), [str(out)])
     merged = merge_runs.merge(str(tmp_path / "m2"), [str(out)], partial=True)
     assert merged["methods"] == got["methods"] and merged["partial"] == got["partial"]
     # A method that has not finished a chunk leaves nothing to report.
     os.remove(results.partial_path(str(out), "ppo_tl"))
-    with pytest.raises(experiment.RunError, match="ppo_tl has not finished a chunk of tasks yet"):
+    with pytest.raises(RunError, match="ppo_tl has not finished a chunk of tasks yet"):
         report.write(str(out), partial=True)
 
 
@@ -211,7 +212,7 @@ def test_a_stopped_run_reports_the_tasks_every_method_has_finished(runner, merge
     (["--devices", "0"], "--devices must be >= 1"),
     (["--resume"], "--resume needs --out"),
     (["--methods", "comps", "ppo_tl", "--baseline", "gmps"],
-     r"--baseline gmps: not one of --methods \(comps, ppo_tl\)"),
+     r"--baseline gmps: not a method of this run; its methods: comps, ppo_tl"),
 ])
 def test_bad_options_exit_2_with_a_message(runner, argv, message, capsys):
     extra = [] if "--resume" in argv else ["--out", "/nonexistent/x"]
@@ -246,7 +247,8 @@ def test_runs_made_before_the_learnt_tasks_evaluations_still_report(full_run, tm
     full = json.loads((full_run / "results.json").read_text())
     for name in ("comps", "ppo_tl"):
         m = got["methods"][name]
-        assert "issue 28" in m["forgetting"]["note"] and "issue 28" in m["average_performance"]["note"]
+        for key in ("forgetting", "average_performance"):
+            assert "before jcomps evaluated the learnt tasks" in m[key]["note"]
         assert m["iterations_to_success"] == full["methods"][name]["iterations_to_success"]
     assert "| comps | n/a | n/a | n/a | – |" in (old / "significance.md").read_text()
 
@@ -364,9 +366,9 @@ def test_merged_runs_report_as_one_run(merge_runs, full_run, tmp_path):
     merged = merge_runs.merge(str(tmp_path / "m"), [str(a), str(b)])
     assert merged == json.loads((full_run / "results.json").read_text()) | {"plots": merged["plots"]}
     assert (tmp_path / "m" / "plots" / "iterations_to_success.png").exists()
-    with pytest.raises(experiment.RunError, match="already holds a run"):
+    with pytest.raises(RunError, match="already holds a run"):
         merge_runs.merge(str(tmp_path / "m"), [str(a), str(b)])
-    with pytest.raises(experiment.RunError, match="comps is in more than one source"):
+    with pytest.raises(RunError, match="comps is in more than one source"):
         merge_runs.merge(str(tmp_path / "m2"), [str(a), str(a)])
     # A method run with other chunking (checkpoints after every task) merges; its results are its own.
     desc = json.loads((b / "run.json").read_text())
@@ -377,16 +379,16 @@ def test_merged_runs_report_as_one_run(merge_runs, full_run, tmp_path):
     assert chunks == {"comps": desc["run"]["chunk_tasks"] - 1, "ppo_tl": desc["run"]["chunk_tasks"]}
     desc["run"]["seeds"] = 3
     (b / "run.json").write_text(json.dumps(desc))
-    with pytest.raises(experiment.RunError, match=r"not the same study as .*run.seeds: run has 2, asked 3"):
+    with pytest.raises(RunError, match=r"not the same study as .*run.seeds: run has 2, asked 3"):
         merge_runs.merge(str(tmp_path / "m3"), [str(a), str(b)])
     (a / "raw" / "comps.npz").unlink()
-    with pytest.raises(experiment.RunError, match="comps has not finished"):
+    with pytest.raises(RunError, match="comps has not finished"):
         merge_runs.merge(str(tmp_path / "m4"), [str(a)])
     # The finished methods of a run whose others are still going.
     shutil.rmtree(tmp_path / "m")
     only = merge_runs.merge(str(tmp_path / "m"), [str(full_run)], methods_=["ppo_tl"])
     assert list(only["methods"]) == ["ppo_tl"] and only["methods"]["ppo_tl"] == merged["methods"]["ppo_tl"]
-    with pytest.raises(experiment.RunError, match="--methods gmps: not in the sources; they have comps, ppo_tl"):
+    with pytest.raises(RunError, match="--methods gmps: not in the sources; they have comps, ppo_tl"):
         merge_runs.merge(str(tmp_path / "m5"), [str(full_run)], methods_=["gmps"])
 
 
@@ -478,10 +480,24 @@ def test_a_full_disk_stops_a_checkpoint_with_a_clear_error_and_keeps_the_ones_be
     checkpoints.save(1, tree)
     usage = collections.namedtuple("usage", "total used free")
     monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(10**6, 10**6 - 1000, 1000))
-    with pytest.raises(checkpoint.RunError, match=r"no space left on the device for checkpoint step 2 in .*ckpt .*"
+    with pytest.raises(RunError, match=r"no space left on the device for checkpoint step 2 in .*ckpt .*"
                                                   r"--resume \(from its last checkpoint, step 1\)"):
         checkpoints.save(2, tree)
     assert checkpoints.manager.all_steps() == [1] and sorted(os.listdir(tmp_path / "ckpt")) == ["1"]
+    # A disk that fills while Orbax writes (the estimate was short: tried on a 200 KB tmpfs, Orbax's writer fails
+    # with RESOURCE_EXHAUSTED and prints nothing): the same RunError, its temporary step removed, step 1 kept.
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(10**9, 0, 10**9))
+
+    def fills(step, args, force):
+        os.makedirs(tmp_path / "ckpt" / f"{step}.orbax-checkpoint-tmp-1")
+        raise ValueError('RESOURCE_EXHAUSTED: Error writing "counters.seconds/0" in OCDBT database')
+
+    monkeypatch.setattr(checkpoints.manager, "save", fills)
+    with pytest.raises(RunError, match=r"no space left on the device writing checkpoint step 2 .*"
+                                                  r"--resume \(from its last checkpoint, step 1\)"):
+        checkpoints.save(2, tree)
+    assert sorted(os.listdir(tmp_path / "ckpt")) == ["1"]
+    assert checkpoints.restore_latest(tree, print)[0] == 1
     assert checkpoint.disk_full(OSError(errno.ENOSPC, "No space left on device"))
     assert checkpoint.disk_full(ValueError("RESOURCE_EXHAUSTED: Error writing local file"))
     assert not checkpoint.disk_full(ValueError("checkpoint entries differ"))

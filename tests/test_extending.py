@@ -26,7 +26,7 @@ def _blocks() -> list[str]:
 def page():
     """The namespace of the page's first two code blocks (the family and the method, registered once), run as the
     body of a module, as a user's file would be."""
-    family_code, method_code, _ = _blocks()
+    family_code, method_code, _, _ = _blocks()
     module = types.ModuleType("extending_example")
     sys.modules[module.__name__] = module
     exec(compile(family_code, f"{DOC}:family", "exec"), module.__dict__)
@@ -44,8 +44,8 @@ def run(page, tmp_path_factory):
     return out, namespace["raws"], namespace["configs"]
 
 
-def test_the_page_has_a_family_a_method_and_a_run():
-    assert len(_blocks()) == 3
+def test_the_page_has_a_family_a_method_a_run_and_a_method_without_ppo():
+    assert len(_blocks()) == 4
 
 
 def test_a_registered_family_is_found_and_runs_through_the_runner(page, run):
@@ -117,3 +117,42 @@ def test_a_method_without_ppo_must_bring_its_own_held_out_meta_test(monkeypatch)
         adapt=lambda state, task, rng, iterations: (None, None))
     monkeypatch.setitem(methods.REGISTRY, "no_ppo", methods.Registered(NoPPOConfig(), adapting))
     assert methods.make("no_ppo", envs.make("point_goal")).adapt is not None
+
+
+@pytest.fixture(scope="module")
+def es_run(page, tmp_path_factory):
+    """The page's fourth block, a method without PPO, registered, then run through the runner with the held-out
+    meta-test on (its own ``adapt``): (run directory, raws, the method's config)."""
+    from jcomps import continual
+    from jcomps.runner import description, experiment
+
+    namespace = dict(page)
+    exec(compile(_blocks()[3], f"{DOC}:es", "exec"), namespace)
+    config = namespace["ESConfig"](budget=20)
+    run = description.RunConfig(family="line_goal", methods=("es_tl",), seeds=2, num_tasks=2, chunk_tasks=1)
+    out = str(tmp_path_factory.mktemp("es") / "run")
+    described = description.describe(run, continual.EvalConfig(backward_tasks=1, heldout_iterations=2),
+                                      {"es_tl": config})
+    raws = experiment.run(out, described)
+    report.write(out)
+    return out, raws, config
+
+
+def test_a_method_without_ppo_runs_through_the_runner_with_its_own_meta_test(es_run):
+    out, raws, config = es_run
+    raw = raws["es_tl"]
+    its = raw.task.iterations
+    assert its.shape == (2, 2) and np.all((its >= 1) & (its <= 20))
+    valid = raw.task.per_iteration.valid
+    returns = raw.task.per_iteration.mean_return
+    # ES learns: on every task of every seed, the last iteration's return is above the first's.
+    last = np.take_along_axis(returns, (its - 1)[..., None].astype(int), axis=2)[..., 0]
+    assert np.all(last > returns[..., 0]), (returns[..., 0], last)
+    assert np.all(valid.sum(axis=2) == its)
+    # The held-out meta-test ran ES's own adapt (it has no PPO config): a curve of 3 points per held-out task at each
+    # of the 3 measurements (before the first task, after each chunk).
+    assert raw.heldout.mean_return.shape[:4] == (2, 3, 2, 3)
+    assert np.isfinite(raw.heldout.mean_return).all()
+    assert "es_tl" in (pathlib.Path(out) / "significance.md").read_text()
+    with pytest.raises(ValueError, match="num_trajectories=3; allowed: an even integer >= 2"):
+        type(config)(num_trajectories=3)

@@ -90,11 +90,24 @@ def test_grid_points_keys_and_programs(runner):
 
 
 def test_with_traced_builds_a_config_without_touching_the_original():
-    base = comps.CoMPSConfig()
-    config = grid.with_traced(base, {"discount": "D", "learning_rate": "L", "max_tasks": 7})
-    assert (config.ppo.discount, config.meta.discount, config.ppo.learning_rate) == ("D", "D", "L")
+    """A member's traced values, the arguments of its program, become its config's fields (every nested occurrence);
+    the configs holding them skip their checks, which concrete values still pass through."""
+    base, seen = comps.CoMPSConfig(), {}
+
+    def member(discount, learning_rate):
+        seen["config"] = grid.with_traced(base, {"discount": discount, "learning_rate": learning_rate,
+                                                 "max_tasks": 7})
+        return seen["config"].ppo.learning_rate
+
+    jax.make_jaxpr(member)(0.9, 0.01)
+    config = seen["config"]
+    assert all(isinstance(x, jax.core.Tracer) for x in (config.ppo.discount, config.meta.discount,
+                                                        config.ppo.learning_rate))
     assert config.max_tasks == 40  # not a traced field: left as it is
     assert base == comps.CoMPSConfig() and isinstance(config, comps.CoMPSConfig)
+    assert grid.with_traced(base, {"learning_rate": 0.5}).ppo.learning_rate == 0.5
+    with pytest.raises(ValueError, match="learning_rate"):
+        grid.with_traced(base, {"learning_rate": -1.0})
 
 
 def test_best_is_the_lowest_iterations_then_the_higher_return():
@@ -143,17 +156,17 @@ def test_every_traced_field_traces(name):
     seq = abstract(jax.tree.map(lambda x: x[None], envs.sequence(family, num_tasks=2)))
     keys = abstract(jax.random.PRNGKey(0)[None])
     index = abstract(jnp.zeros(1, jnp.int32))
-    metrics = jax.eval_shape(lambda *a: program.run_chunk(a[0], a[1], 0, *a[2:]), states, seq, keys, index,
+    metrics = jax.eval_shape(lambda *a: program.learn_chunk(a[0], a[1], 0, 1, *a[2:]), states, seq, keys, index,
                              hparams)[1]
     assert metrics.task.iterations.shape == (1, 1)
-    held, learnt = jax.eval_shape(program.heldout, states, envs.held_out(family), keys, seq, jnp.int32(1), keys,
-                                  index, hparams)
-    assert held.iterations.shape[0] == 1 and jax.tree.leaves(learnt)[0].shape[:2] == (1, 2)
+    measured = jax.eval_shape(program.measure, states, envs.held_out(family), keys, seq, jnp.int32(1), keys, index,
+                              hparams)
+    assert measured.heldout.iterations.shape[0] == 1 and jax.tree.leaves(measured.learnt)[0].shape[:2] == (1, 2)
     # The runner sizes its host copies from continual's shapes without tracing these programs: they must agree.
     eval_config = continual.EvalConfig(heldout_iterations=2).resolve("point_goal")
     member = lambda tree: jax.tree.map(lambda x: (1,) + x.shape + (x.dtype,), tree)  # noqa: E731
     expected = continual.heldout_shapes(eval_config, len(family.held_out_values), 2)
-    assert member(expected) == jax.tree.map(lambda x: x.shape + (x.dtype,), (held, learnt))
+    assert member(expected) == jax.tree.map(lambda x: x.shape + (x.dtype,), measured)
     evaluation = jax.eval_shape(program.evaluate_task, states, seq, jnp.int32(0), keys, hparams)
     assert member(continual.task_evaluation_shapes(eval_config)) == jax.tree.map(lambda x: x.shape + (x.dtype,),
                                                                                   evaluation)
@@ -225,7 +238,7 @@ def test_grid_program_traced_once(runner, grid_run):
     programs = [p for k, p in runner.PROGRAMS.items() if k[0] == "ppo_tl" and k[3] == ("learning_rate",)]
     assert len(programs) == 2
     for p in programs:
-        assert p.traces == {"init": 1, "learn": 1, "evaluate_task": 1, "heldout": 1}
+        assert p.traces == {"init": 1, "learn": 1, "evaluate_task": 1, "measure": 1}
 
 
 def test_killed_and_resumed_grid_run_equals_the_uninterrupted_one(runner, grid_run, tmp_path):

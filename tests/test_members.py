@@ -42,11 +42,11 @@ def _keys_drawn_from(key) -> set:
 
 def test_evaluation_keys_never_equal_a_key_the_method_draws():
     seeds = [0, 1, 2]
-    eval_keys = [members.eval_keys(seeds, p) for p in [1, 1000, 1001, 1002, 1003]]
+    eval_keys = [members.task_eval_keys(seeds)] + [members.heldout_keys(seeds, m) for m in range(4)]
     for s, method_key in enumerate(members.method_keys(seeds)):
         drawn = _keys_drawn_from(method_key)
         evaluations = {tuple(np.asarray(k[s]).tolist()) for k in eval_keys}
-        # The backward-transfer keys are folded further per task and per previous task (continual.run_chunk).
+        # The backward-transfer keys are folded further per task and per previous task (continual.evaluate_task).
         evaluations |= {tuple(np.asarray(jax.random.fold_in(jax.random.fold_in(eval_keys[0][s], i), d)).tolist())
                         for i in range(4) for d in range(3)}
         # So are the learnt tasks' evaluation keys, apart from them (continual.learnt_key).

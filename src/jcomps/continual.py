@@ -1,11 +1,14 @@
-"""The continual loop: a method learns a sequence of tasks one at a time, as a ``lax.scan`` over tasks.
+"""The continual protocol: a method learns a sequence of tasks one at a time, and is evaluated as it goes.
 
-Seeds are a ``vmap`` axis: ``run_seeds`` runs S independent seeds (each with its own task order if the
-sequences differ) in one compiled program. ``run_chunk`` is the building block of the experiment runner: it
-learns ``chunk`` tasks from a given position of the sequence and evaluates as it goes (backward transfer), so
-a long sequence runs as a host loop over chunks with a checkpoint between them, every chunk through the same
-compiled program. ``learnt_tasks`` evaluates the policy on every task learnt so far (forgetting, average
-performance), with the same episodes of each task as right after it was learnt.
+The pieces the runner (``jcomps.runner.experiment``) compiles, each a pure function of one member's state:
+``learn_at`` learns the task at one position of the sequence; ``evaluate_task`` evaluates the state right after
+it (backward transfer on the previous tasks, the learnt task itself); ``heldout_adaptation`` is the held-out
+meta-test and ``learnt_tasks`` evaluates the policy on every task learnt so far (forgetting, average performance),
+with the same episodes of each task as right after it was learnt. The runner's host loop runs them task by task,
+chunk by chunk, with a checkpoint after every chunk.
+
+For library use without a run directory, ``run_tasks`` learns a whole sequence as one ``lax.scan`` over tasks and
+``run_seeds`` vmaps it over seeds: one compiled program, no evaluations.
 """
 
 from __future__ import annotations
@@ -178,7 +181,8 @@ class Evaluation(NamedTuple):
 
 
 class ChunkMetrics(NamedTuple):
-    """What ``run_chunk`` reports for its ``chunk`` task positions (leading axis [chunk]).
+    """What the runner reports for the task positions of a chunk (leading axis [chunk]): each position's
+    ``learn_at`` metrics and ``evaluate_task`` evaluations (``chunk_metrics``).
 
     Attributes:
       task: TaskMetrics of each task learnt.
@@ -188,8 +192,6 @@ class ChunkMetrics(NamedTuple):
       backward_success: f32[chunk, backward_tasks], the success rate of the same episodes.
       learnt: Evaluation [chunk], the policy right after task i on task i itself, with the episodes of task i
         that every ``learnt_tasks`` evaluation uses (the start of its forgetting).
-
-    Positions past the end of the sequence report zeros.
     """
 
     task: TaskMetrics
@@ -224,8 +226,10 @@ def _task_at(sequence, i):
 
 
 def learn_at(method: Method, state, sequence, i):
-    """Learns the task at position ``i`` (i32[]) of ``sequence`` from ``state``: (state, TaskMetrics). The
-    runner's ``learn`` program (one task; the host loops over positions)."""
+    """Learns the task at position ``i`` (i32[]) of ``sequence`` (a task pytree [num_tasks]) from ``state``:
+    (state, TaskMetrics). The runner's ``learn`` program (one task; the host loops over positions). A sequence
+    longer than the method's task slots is refused (``check_capacity``)."""
+    check_capacity(method, jax.tree.leaves(sequence)[0].shape[0])
     return jax.jit(method.learn_task)(state, _task_at(sequence, i))
 
 
@@ -250,7 +254,7 @@ def evaluate_task(method: Method, eval_config: EvalConfig, state, sequence, i, e
     keys = jax.vmap(lambda d: jax.random.fold_in(jax.random.fold_in(eval_key, i), d))(jnp.arange(k))
 
     def back(j, key):
-        j = jnp.maximum(j, 0)  # the rollout keeps ``key`` (the same stream as before policy_for existed)
+        j = jnp.maximum(j, 0)  # every task's rollout draws from its own ``key``
         return _evaluate(method, state, j, _task_at(sequence, j), key, trajectories)
 
     # Two rollouts, not one of k + 1 lanes: XLA rounds a lane's mean return differently in a batch of another size,
@@ -264,32 +268,6 @@ def chunk_metrics(metrics: TaskMetrics, evaluation: TaskEvaluation) -> ChunkMetr
     """The ChunkMetrics of one position from its TaskMetrics and TaskEvaluation."""
     return ChunkMetrics(metrics, evaluation.backward_returns, evaluation.backward_valid, evaluation.backward_success,
                         evaluation.learnt)
-
-
-def run_chunk(method: Method, eval_config: EvalConfig, state, sequence, start, chunk: int, eval_key):
-    """Learns tasks ``start … start + chunk − 1`` of ``sequence`` (a task pytree [num_tasks]) from ``state``, each
-    followed by its evaluations (``learn_at``, ``evaluate_task``), as one traced function.
-
-    Positions past the end of the sequence are skipped (a ``lax.cond`` on ``start``, which must not be
-    batched), so a sequence of any length runs through one compiled chunk program. ``eval_key`` seeds the
-    evaluation rollouts only: the method's own random stream is the same with or without evaluation, and with
-    any chunking. Returns (state, ChunkMetrics). (The runner runs the two parts as programs of their own, one
-    task at a time: ``jcomps.runner.experiment.MethodProgram``.)
-    """
-    num_tasks = jax.tree.leaves(sequence)[0].shape[0]
-    check_capacity(method, num_tasks)
-
-    def do(state, i):
-        new_state, metrics = learn_at(method, state, sequence, i)
-        return new_state, chunk_metrics(metrics, evaluate_task(method, eval_config, new_state, sequence, i, eval_key))
-
-    def body(state, c):
-        i = start + c
-        shapes = jax.eval_shape(do, state, i)
-        skip = lambda s, _: (s, jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes[1]))  # noqa: E731
-        return jax.lax.cond(i < num_tasks, do, skip, state, i)
-
-    return jax.lax.scan(body, state, jnp.arange(chunk, dtype=jnp.int32))
 
 
 def learnt_tasks(method: Method, eval_config: EvalConfig, state, sequence, learnt, eval_key) -> Evaluation:
@@ -333,14 +311,22 @@ def _shape(*shape, dtype=jnp.float32):
     return jax.ShapeDtypeStruct(shape, dtype)
 
 
-def heldout_shapes(eval_config: EvalConfig, num_heldout: int, num_tasks: int):
-    """The shapes (``jax.ShapeDtypeStruct``) of one member's (HeldoutMetrics, learnt Evaluation) of
-    ``heldout_adaptation`` and ``learnt_tasks`` without tracing them (the runner needs them before those programs
-    are compiled; a test checks them against the traced functions)."""
+class Measurement(NamedTuple):
+    """What the runner measures at the start and after every chunk of tasks: the held-out meta-test
+    (``heldout_adaptation``) and the evaluation of every learnt task (``learnt_tasks``)."""
+
+    heldout: HeldoutMetrics
+    learnt: Evaluation
+
+
+def heldout_shapes(eval_config: EvalConfig, num_heldout: int, num_tasks: int) -> Measurement:
+    """The shapes (``jax.ShapeDtypeStruct``) of one member's Measurement without tracing ``heldout_adaptation``
+    and ``learnt_tasks`` (the runner needs them before those programs are compiled; a test checks them against the
+    traced functions)."""
     curve = eval_config.heldout_iterations + 1
     held = HeldoutMetrics(_shape(num_heldout, curve), _shape(num_heldout, curve), _shape(num_heldout, dtype=jnp.int32),
                           _shape(num_heldout, dtype=bool))
-    return held, Evaluation(_shape(num_tasks), _shape(num_tasks), _shape(num_tasks, dtype=bool))
+    return Measurement(held, Evaluation(_shape(num_tasks), _shape(num_tasks), _shape(num_tasks, dtype=bool)))
 
 
 def task_evaluation_shapes(eval_config: EvalConfig) -> TaskEvaluation:

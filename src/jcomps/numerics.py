@@ -19,6 +19,16 @@ def check_field(ok: bool, field: str, value, allowed: str):
         raise ValueError(f"invalid config value {field}={value!r}; allowed: {allowed}")
 
 
+def holds_tracers(config) -> bool:
+    """Whether a field of the config dataclass ``config`` holds a traced value: a hyperparameter-grid axis's
+    member value inside a compiled program (``jcomps.runner.grid.with_traced``). Its ``__post_init__`` then skips
+    its checks, which cannot compare tracers; every value of the axis was checked concretely beforehand
+    (``jcomps.runner.grid.points``)."""
+    import dataclasses
+
+    return any(isinstance(getattr(config, f.name), jax.core.Tracer) for f in dataclasses.fields(config))
+
+
 def check_finite_fields(config) -> None:
     """Raises ValueError naming the first field of the config dataclass ``config`` (nested configs are checked by
     their own ``__post_init__``) that holds a NaN or an infinity, alone or inside a tuple: no config field takes

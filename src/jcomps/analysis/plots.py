@@ -124,7 +124,7 @@ def _meta_health(save: Callable, with_meta: dict, tasks) -> None:
                     label=f"{name}, all tasks")
         ax_rho.plot(tasks, np.nanmean(_floats(m["oldest_rho_end"]), axis=0), ls=":", color=f"C{k_}",
                     label=f"{name}, task 1")
-        if np.isfinite(_floats(m.get("inner_gain_end", [[np.nan]]))).any():  # not in runs made before issue 43
+        if np.isfinite(_floats(m.get("inner_gain_end", [[np.nan]]))).any():  # not in runs made before it was measured
             ax_gain.plot(tasks, np.nanmean(_floats(m["inner_gain_end"]), axis=0), marker="o", ms=3, color=f"C{k_}",
                          label=f"{name}, mean over seen tasks")
             ax_gain.plot(tasks, np.nanmean(_floats(m["newest_inner_gain_end"]), axis=0), ls=":", marker="x", ms=3,
@@ -244,7 +244,7 @@ def write(results: dict, raws: dict, directory: str, description) -> list[str]:
     _heldout(save, methods_)
     with_critic = {name: m["critic"] for name, m in methods_.items()
                    if np.isfinite(_floats(m.get("critic", {}).get("value_ev_mean", [[np.nan]]))).any()}
-    if with_critic:  # not in runs made before issue 44, nor for PEARL
+    if with_critic:  # not in older runs, nor for PEARL
         _critic(save, with_critic, tasks)
     with_meta = {name: m["meta"] for name, m in methods_.items() if "meta" in m}
     if with_meta:

@@ -209,7 +209,7 @@ def learnt_summary(raw: results_.RawResults) -> dict:
     or at the end): {"forgetting", "average_performance", "learnt_success"}, each with a ``note`` instead when the
     run has no such evaluations."""
     if raw.learnt is None or raw.learnt_tasks is None:
-        note = {"note": "not measured: the run was made before the learnt tasks were evaluated (issue 28)"}
+        note = {"note": "not measured: the run was made before jcomps evaluated the learnt tasks"}
         return {"forgetting": note, "average_performance": note}
     learnt, later = raw.learnt, raw.learnt_tasks
     rows = [p for p in range(later.valid.shape[1]) if later.valid[:, p].any()]
@@ -291,7 +291,7 @@ def probability_of_improvement(raw: results_.RawResults, baseline_raw: results_.
 def critic_summary(per_iteration) -> dict:
     """The RL step's critic for ``results.json``: per seed and task, its explained variance of the value targets
     (mean over the iterations that updated, the first and the last of them) and its value loss (mean over the same
-    iterations); null where not measured (runs made before issue 44, PEARL's Q-critics)."""
+    iterations); null where not measured (runs made before jcomps measured it, PEARL's Q-critics)."""
     fit = statistics.critic_fit(per_iteration.value_ev, per_iteration.value_loss, per_iteration.valid)
     rows = lambda x: [[_json_float(round(float(v), 6)) for v in row] for row in x]  # noqa: E731
     return {"statistic": "per seed and task, over the RL step's iterations that updated: the critic's explained "

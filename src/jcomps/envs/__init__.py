@@ -111,7 +111,7 @@ def _metaworld(reward: str = "v2") -> Callable[[], Family]:
 # calibrated without normalisation.
 # Meta step: the paper's table of inner learning rates (0.005 on the MuJoCo families, MetaConfig's default;
 # 0.0025 on MetaWorld). The MuJoCo families' outer learning rate is 0.001, chosen by the meta step's grid on
-# Half-Cheetah (issue 43; docs/results.md): outer {0.001, 0.005} x inner {0.0025, 0.005, 0.01} x meta steps
+# Half-Cheetah (docs/results.md): outer {0.001, 0.005} x inner {0.0025, 0.005, 0.01} x meta steps
 # {25, 100}, lowest mean iterations at 0.001 / 0.005 / 25 (every rung takes it: it is a family setting).
 # Evaluation: the held-out iterations-to-success is ours (the paper's held-out measure is the return after a small
 # fixed budget, the curve of heldout_iterations): on Point Goal, where held-out tasks are solved in a few iterations,
@@ -122,7 +122,7 @@ def _metaworld(reward: str = "v2") -> Callable[[], Family]:
 # fields (kl_weight = its kl_lambda × its meta_batch); MetaWorld takes oyster's defaults.
 _MUJOCO_PPO = {"reward_scale": 0.1, "num_updates": 256, "learning_rate": 1e-4}
 _MUJOCO_META = {"outer_learning_rate": 0.001}
-# Point Goal's PPO keeps the paper's plain settings but for a reward scale of 0.1 (issue 44): with returns of −17 to
+# Point Goal's PPO keeps the paper's plain settings but for a reward scale of 0.1: with returns of −17 to
 # −100 unscaled, its critic saturated on the first task and predicted one constant (docs/families.md). The meta
 # step's advantages are in the RL step's reward units, so its inner learning rate takes the inverse factor: 0.05
 # on rewards × 0.1 is the paper's α = 0.005 on Point Goal's raw rewards, the inner step it had before.
@@ -140,7 +140,7 @@ register("ant_dir", _mujoco("ant_dir"), {
     "ppo": {**_MUJOCO_PPO, "init_std": 0.15}, "meta": dict(_MUJOCO_META),
     "pearl": {"context_size": 256, "updates_per_step": 0.8, "prior_fraction": 0.4, "kl_weight": 0.4}})
 register("metaworld", _metaworld(), {"ppo": dict(_MUJOCO_PPO), "meta": {"inner_learning_rate": 0.0025}})
-# The same tasks with MetaWorld v1's original reward (issue 32 measures both; docs/families.md): its returns are
+# The same tasks with MetaWorld v1's original reward (docs/families.md measures both): its returns are
 # 10^2-10^4 times v2's (up to ~170,000 per episode), so the reward scale is 0.001 (on Hammer, 0.001 learnt further
 # than 0.01 at either initial std; 0.1 puts value targets in the thousands). PEARL's scale (5 on the v2 reward,
 # its default) takes the same factor, 0.01: not measured on this family.

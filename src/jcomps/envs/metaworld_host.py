@@ -238,9 +238,9 @@ class Pool:
 
     The batch is cut into contiguous parts, one per worker; the caller only sends and receives. (It used to step
     a part itself; in a process that has imported JAX, MetaWorld steps ran 5-10% slower than in a light one,
-    which cost the 2-worker Push-Wall benchmark its last 10%; see docs/design.md.) Workers run this file as a
-    script (so they import neither JAX nor the caller's ``__main__``: multiprocessing's ``spawn`` would re-run an
-    unguarded script) and talk over a socket pair; they start on the first batch that needs them and end when
+    which cost the 2-worker Push-Wall benchmark its last 10%; see docs/log.md, "MetaWorld on the host".) Workers run
+    this file as a script (so they import neither JAX nor the caller's ``__main__``: multiprocessing's ``spawn`` would
+    re-run an unguarded script) and talk over a socket pair; they start on the first batch that needs them and end when
     the caller closes the pool or exits. Thread-safe (one batch at a time).
     """
 

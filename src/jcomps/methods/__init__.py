@@ -62,7 +62,7 @@ class Registered(NamedTuple):
 
 # Whether the inner step's advantages are standardised per task (GMPS's ``center_adv``) is one choice for the whole
 # ladder, so that no rung changes it: the rung that adds importance sampling changes only the weights and the
-# baseline (docs/design.md, "The ablation ladder: one feature per rung", has both readings measured).
+# baseline (docs/log.md, "The ablation ladder: one feature per rung", has both readings measured).
 STANDARDISED_INNER_ADVANTAGES = False
 _META = meta.MetaConfig(normalize_advantages=STANDARDISED_INNER_ADVANTAGES)
 _NO_IS = dataclasses.replace(_META, importance_sampling=False, vtrace_baseline=False)
@@ -106,7 +106,8 @@ LADDER: tuple[tuple[str, str, str], ...] = (
 # within a method's config -> a function of such a run's stored config (``run.json``'s ``methods[name]``) giving
 # the value the run had, or None where the field changed nothing for it (it takes the default).
 EARLIER_VALUES: dict[str, Callable[[Mapping], Any]] = {
-    # Before issue 43 the rungs without the warm start started their meta step from the last meta policy.
+    # Runs made before this field existed: the rungs without the warm start started their meta step from the last
+    # meta policy.
     "meta_start": lambda stored: None if stored.get("warm_start", True) else "last",
 }
 

@@ -11,7 +11,6 @@ function, and the meta step's V-trace runs in the RL step's reward units (``meta
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 from typing import Any, NamedTuple, Optional
 
@@ -98,14 +97,10 @@ class CoMPSState(NamedTuple):
 
 def meta_config(config: CoMPSConfig) -> meta.MetaConfig:
     """The meta step's config with the fields that follow the RL step resolved: ``reward_scale`` None takes the RL
-    step's reward scale, ``value_learning_rate`` None its learning rate (either may be a traced grid value, so the
-    copy is made without validation; the RL step's config has checked them)."""
+    step's reward scale, ``value_learning_rate`` None its learning rate (either may be a traced grid value)."""
     follow = {"reward_scale": config.ppo.reward_scale, "value_learning_rate": config.ppo.learning_rate}
-    out = copy.copy(config.meta)
-    for name, value in follow.items():
-        if getattr(out, name) is None:
-            object.__setattr__(out, name, value)
-    return out
+    return dataclasses.replace(config.meta, **{name: value for name, value in follow.items()
+                                               if getattr(config.meta, name) is None})
 
 
 def meta_start(config: CoMPSConfig, state: CoMPSState, learnt: dict) -> dict:

@@ -16,7 +16,7 @@ One iteration on task i:
 
 An iteration collects twice the env steps of a PPO iteration (``Method.env_steps_per_iteration``). The state's
 ``params`` hold θ, which the next task starts from; the evaluations read what MAML reports, the adapted policy
-(docs/design.md, "MAML+TL"):
+(docs/log.md, "MAML+TL"):
 
 - ``policy_for`` (backward transfer, replays): φ after one inner step from θ on ``num_trajectories`` fresh
   episodes of the evaluated task, as in training's steps 1–2;
@@ -36,12 +36,7 @@ import jax.numpy as jnp
 from jcomps.envs.base import Family
 from jcomps.methods.base import Method, TaskMetrics
 from jcomps.numerics import (
-    all_finite,
-    check_field,
-    check_finite_fields,
-    keep_if_finite,
-    masked_mean,
-    masked_standardize,
+    all_finite, check_field, check_finite_fields, holds_tracers, keep_if_finite, masked_mean, masked_standardize,
 )
 from jcomps.progress import ProgressFn, with_fields
 from jcomps.training import acting, networks, ppo, rl_loop
@@ -74,6 +69,8 @@ class MAMLTLConfig(ppo.PPOBased):
     """Fields that may hold traced scalars (a hyperparameter-grid axis)."""
 
     def __post_init__(self):
+        if holds_tracers(self):  # a traced grid value (``numerics.holds_tracers``)
+            return
         check_finite_fields(self)
         check_field(self.inner_learning_rate > 0, "inner_learning_rate", self.inner_learning_rate, "a number > 0")
         check_field(self.inner_objective in ("vpg", "lvc"), "inner_objective", self.inner_objective,

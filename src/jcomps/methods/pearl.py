@@ -57,12 +57,7 @@ from brax.training.agents.sac import networks as sac_networks
 from jcomps.envs.base import Family
 from jcomps.methods.base import Method, TaskMetrics
 from jcomps.numerics import (
-    all_finite,
-    check_field,
-    check_finite_fields,
-    keep_if_finite,
-    masked_mean,
-    masked_weights,
+    all_finite, check_field, check_finite_fields, holds_tracers, keep_if_finite, masked_mean, masked_weights,
     optimizer_step,
 )
 from jcomps.progress import ProgressFn, with_fields
@@ -79,7 +74,7 @@ class PEARLConfig:
     """Iterations per task N; None takes the family's paper value."""
     num_updates: Optional[int] = None
     """Gradient steps per iteration (a tuning axis: ``--grid num_updates=...``); None: ``updates_per_step`` times
-    the env steps the iteration collects. A CPU-sized setting is 64 (the default before issue 28: docs/design.md)."""
+    the env steps the iteration collects. A CPU-sized setting is 64 (docs/design.md)."""
     updates_per_step: float = 0.5
     """Gradient steps per env step collected, when ``num_updates`` is None: oyster's ratio, 2,000 steps per round of
     5 tasks × 800 transitions (``configs/default.py``; its point robot: 1,000 per 5 × 400; its Ant configs 4,000
@@ -101,7 +96,7 @@ class PEARLConfig:
     episodes); the other episodes act with z from the posterior of contexts drawn from it and go to the replay
     buffer only (oyster's ``num_extra_rl_steps_posterior``, ``add_to_enc_buffer=False``), and the iteration's
     success rate is theirs. ``replay``: contexts drawn from the slot's whole replay buffer, every episode acting with
-    z from its posterior (jcomps before issue 28)."""
+    z from its posterior (a simpler reading of the paper)."""
     prior_fraction: float = 0.5
     """With ``context_source="prior"``: the share of each iteration's ``num_trajectories`` episodes collected with
     z from the prior (oyster: ``num_steps_prior`` 400 of 800 per round; 400 of 1,000 in its Ant and cheetah-vel
@@ -155,6 +150,8 @@ class PEARLConfig:
         return self
 
     def __post_init__(self):
+        if holds_tracers(self):  # a traced grid value (``numerics.holds_tracers``)
+            return
         check_finite_fields(self)
         positive_int = "an integer >= 1"
         for name in ("num_trajectories", "minibatch_size", "meta_batch", "context_size", "latent_size",

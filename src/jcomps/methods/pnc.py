@@ -40,7 +40,9 @@ import optax
 from jcomps import progress
 from jcomps.envs.base import Family
 from jcomps.methods.base import Method, TaskMetrics
-from jcomps.numerics import check_field, check_finite_fields, guarded_update, masked_mean, masked_weights
+from jcomps.numerics import (
+    check_field, check_finite_fields, guarded_update, holds_tracers, masked_mean, masked_weights,
+)
 from jcomps.progress import ProgressFn, with_fields
 from jcomps.training import acting, networks, ppo
 
@@ -70,13 +72,15 @@ class PNCConfig(ppo.PPOBased):
     kb_statistics: str = "tasks"
     """The knowledge base's observation statistics: ``tasks``, pooled over every compressed task with equal weight
     (updated at each compress phase, the KB's first layer re-expressed to keep its function on earlier tasks);
-    ``first_task``, the active column's at the first compress phase, then kept (the behaviour before issue 28:
+    ``first_task``, the active column's at the first compress phase, then kept (an ablation:
     on MetaWorld, P-0's constant dimensions clip Hammer's observations at ±OBS_CLIP)."""
 
     TRACED: ClassVar[frozenset] = frozenset({"distill_learning_rate", "ewc_lambda", "ewc_gamma"})
     """Fields that may hold traced scalars (a hyperparameter-grid axis)."""
 
     def __post_init__(self):
+        if holds_tracers(self):  # a traced grid value (``numerics.holds_tracers``)
+            return
         check_finite_fields(self)
         check_field(0 < self.compress_fraction < 1, "compress_fraction", self.compress_fraction,
                     "a number in (0, 1)")

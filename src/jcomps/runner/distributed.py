@@ -17,7 +17,7 @@ cover every process's members.
 
 Starting: ``--coordinator HOST:PORT --num-processes N --process-id I`` (``add_args``), or none of them under a
 cluster manager that ``jax.distributed.initialize()`` detects (a SLURM step or an Open MPI job of more than one
-task: ``detect``). Without either a run is one process, as before. ``start`` must run before JAX starts its
+task: ``detect``). Without either a run is one process. ``start`` must run before JAX starts its
 backend (like ``jcomps.runner.hostdevices.configure``). Failure: a process that loses its peers (one died or was killed:
 a collective or a barrier fails) raises ``PeerLost``, which the runner turns into a message and exit code 3 at
 once; a peer that stops answering without closing its connections (a host that froze) is caught by the runtime's

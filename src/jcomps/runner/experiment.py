@@ -15,7 +15,7 @@ A run directory holds:
 
 Here is the host loop. A program's members (``jcomps.runner.members``: the seeds, or a grid's points × the seeds) run
 through its compiled programs (``jcomps.runner.programs``): the host loops over the tasks of a chunk (``learn``, then
-``evaluate_task``), evaluates after the chunk (``heldout``) and checkpoints; since every chunk runs through the
+``evaluate_task``), measures after the chunk (``measure``) and checkpoints; since every chunk runs through the
 same programs from the restored state, a resumed run gives per-task results identical to an uninterrupted one.
 
 Nothing here prints: the outside world gets events through one ``progress_fn`` callback (``ProgressReceiver``;
@@ -32,7 +32,6 @@ import time
 from typing import Callable, Optional
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from jcomps import continual, envs, methods, progress
@@ -41,7 +40,7 @@ from jcomps.runner import grid as grids
 from jcomps.runner.checkpoint import Checkpoints, record, unflatten
 from jcomps.runner.description import RunDescription
 from jcomps.runner.files import RunError  # noqa: F401 - what run raises
-from jcomps.runner.members import eval_keys, layout, method_keys, num_devices, task_sequences
+from jcomps.runner.members import heldout_keys, layout, method_keys, num_devices, task_eval_keys, task_sequences
 from jcomps.runner.programs import PART_NAMES, Programs
 from jcomps.runner.rundir import open_run_dir
 
@@ -170,8 +169,8 @@ class _ProgramRun:
     """One program's run (``run_program``): what stays fixed while it runs (its members, compiled programs, the
     task sequences and keys on the devices), the host copies of its metrics, its checkpoints and its events.
 
-    ``per_task``: ChunkMetrics [members, num_tasks, ...], filled task by task; ``heldout``: (HeldoutMetrics,
-    Evaluation of the learnt tasks) [members, num_chunks + 1, ...], measured at the start and after every chunk.
+    ``per_task``: ChunkMetrics [members, num_tasks, ...], filled task by task; ``heldout``: the
+    ``continual.Measurement`` [members, num_chunks + 1, ...], measured at the start and after every chunk.
     """
 
     def __init__(self, out: str, spec: grids.ProgramSpec, description: RunDescription, progress_fn: ProgressReceiver,
@@ -193,7 +192,7 @@ class _ProgramRun:
                                                          run.num_tasks, run.tasks))
         self.heldout_tasks = jax.device_get(envs.held_out(self.family))  # host arrays: the same on every process
         self.seed_index = self.program.put(np.arange(len(self.member_seed), dtype=np.int32))
-        self.backward_keys = self.program.put(eval_keys(self.member_seed, 1))
+        self.backward_keys = self.program.put(task_eval_keys(self.member_seed))
         self.init_keys = method_keys(self.member_seed)
         self.num_chunks = math.ceil(run.num_tasks / self.program.chunk)
         # The reported members of each point (padding members are dropped), and the tasks learnt at each
@@ -223,9 +222,9 @@ class _ProgramRun:
                                                                                    seconds=seconds))
         self.emit(COMPILED, **where, **times._asdict())
 
-    def compile_heldout(self, states):
+    def compile_measure(self, states):
         """The held-out program, compiled for arguments shaped as ``evaluate`` gives them (a no-op once done)."""
-        self.compile("heldout", states, self.heldout_tasks, self.backward_keys, self.sequences, np.int32(0),
+        self.compile("measure", states, self.heldout_tasks, self.backward_keys, self.sequences, np.int32(0),
                      self.backward_keys, self.seed_index, self.hparams)
 
     def open(self, resume: bool):
@@ -294,35 +293,33 @@ class _ProgramRun:
             # The held-out meta-test of the initial policies (0 tasks learnt): the same states and keys as
             # before training, measured after the first chunk, off the path to the first iteration.
             initial = self.program.init(self.init_keys, self.hparams_host)
-            self.evaluate(initial, 0, 0, eval_keys(self.member_seed, 1000), 0)
+            self.evaluate(initial, 0, 0, heldout_keys(self.member_seed, 0), 0)
         # The learnt tasks after every chunk, or (learnt_eval=end) after the last one only.
         learnt = stop if self.eval_config.learnt_eval == "chunk" or stop == self.run.num_tasks else 0
-        _, learnt_now = self.evaluate(states, c + 1, learnt, eval_keys(self.member_seed, 1001 + c), stop)
+        learnt_now = self.evaluate(states, c + 1, learnt, heldout_keys(self.member_seed, c + 1), stop).learnt
         self.save(states, c + 1)
         self.report_chunk(start, stop, metrics, learnt_now)
         return states
 
     def learn_chunk(self, states, start: int, stop: int):
         """(states, ChunkMetrics [members, stop - start] on the host) after learning the tasks at positions
-        ``start``..``stop - 1`` in turn, each evaluated right after it is learnt."""
-        task_metrics = []
-        for i in range(start, stop):
-            states, learnt = self.program.learn(states, self.sequences, np.int32(i), self.seed_index, self.hparams)
-            # Dispatched without waiting: the evaluation programs compile while the task trains.
-            self.compile("evaluate_task", states, self.sequences, np.int32(i), self.backward_keys, self.hparams)
-            evaluation = self.program.evaluate_task(states, self.sequences, np.int32(i), self.backward_keys,
-                                                    self.hparams)
-            self.compile_heldout(states)
-            task_metrics.append(continual.chunk_metrics(learnt, evaluation))
-        return states, to_host(jax.tree.map(lambda *x: jnp.stack(x, axis=1), *task_metrics))
+        ``start``..``stop - 1`` in turn (``MethodProgram.learn_chunk``), each evaluated right after it is learnt;
+        the evaluation programs compile while the first task trains."""
+        def compile_evaluations(states):  # dispatched without waiting: these compile while the task trains
+            self.compile("evaluate_task", states, self.sequences, np.int32(start), self.backward_keys, self.hparams)
+            self.compile_measure(states)
+
+        states, metrics = self.program.learn_chunk(states, self.sequences, start, stop, self.backward_keys,
+                                                   self.seed_index, self.hparams, after_learn=compile_evaluations)
+        return states, to_host(metrics)
 
     def evaluate(self, states, column: int, learnt: int, keys, after: int):
         """The evaluations of ``states`` (``learnt``: the tasks to evaluate) into column ``column`` of ``heldout``
         (``after``: the tasks learnt, for the progress lines); returns them on the host."""
-        self.compile_heldout(states)
+        self.compile_measure(states)
         self.emit(EVALUATING, after_tasks=after, learnt=learnt, adapts=self.eval_config.heldout_measured)
         began = time.time()
-        out = to_host(self.program.heldout(states, self.heldout_tasks, self.program.put(keys), self.sequences,
+        out = to_host(self.program.measure(states, self.heldout_tasks, self.program.put(keys), self.sequences,
                                            np.int32(learnt), self.backward_keys, self.seed_index, self.hparams))
         jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), column), src), self.heldout, out)
         self.emit(EVALUATED, after_tasks=after, seconds=time.time() - began)
@@ -357,8 +354,8 @@ class _ProgramRun:
         for p, point in enumerate(self.points):
             mine = self.slices[p]
             task = jax.tree.map(lambda x: np.asarray(x[mine][:, :upto]), self.per_task)
-            held = jax.tree.map(lambda x: np.asarray(x[mine][:, :measured]), self.heldout[0])
-            learnt = jax.tree.map(lambda x: np.asarray(x[mine][:, :measured, :upto]), self.heldout[1])
+            held = jax.tree.map(lambda x: np.asarray(x[mine][:, :measured]), self.heldout.heldout)
+            learnt = jax.tree.map(lambda x: np.asarray(x[mine][:, :measured, :upto]), self.heldout.learnt)
             raws[point.key] = results.RawResults(task.task, task.backward_returns, task.backward_valid, held,
                                                  self.after_tasks[:measured], float(seconds), int(self.devices),
                                                  task.backward_success, task.learnt, learnt)

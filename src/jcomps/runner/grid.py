@@ -19,7 +19,6 @@ order (``key``); tuple values are written ``128x64``. A method that has none of 
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import itertools
 import math
@@ -184,18 +183,18 @@ def replace_flat(config, field: str, value):
 
 
 def with_traced(config, values: dict):
-    """A copy of ``config`` whose traced fields named in ``values`` hold those values (e.g. tracers), every
-    nested occurrence included. No validation runs (``__post_init__`` cannot compare tracers): check every
-    concrete value beforehand (``points`` does). ``config`` itself is not changed."""
-    new = copy.copy(config)
+    """``config`` with its traced fields named in ``values`` set to those values (a member's hyperparameters, the
+    arguments of a compiled program: tracers), every nested occurrence included. A config holding a tracer skips
+    its checks (``jcomps.numerics.holds_tracers``): every concrete value is checked beforehand (``points``)."""
     traced = getattr(type(config), "TRACED", frozenset())
+    changes = {}
     for f in dataclasses.fields(config):
         current = getattr(config, f.name)
         if dataclasses.is_dataclass(current):
-            object.__setattr__(new, f.name, with_traced(current, values))
+            changes[f.name] = with_traced(current, values)
         elif f.name in values and f.name in traced:
-            object.__setattr__(new, f.name, values[f.name])
-    return new
+            changes[f.name] = values[f.name]
+    return dataclasses.replace(config, **changes)
 
 
 def axes_of(method_fields, grid: Grid) -> list:

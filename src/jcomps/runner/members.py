@@ -40,7 +40,7 @@ def layout(spec: grids.ProgramSpec, seeds: int, first_seed: int, devices: int) -
     """The member layout of a program: (grid point index, seed) of every member, and the traced values
     ({field: f32[members]}). Point-major: member ``p * seeds + s`` is point ``p`` with seed ``first_seed + s``;
     padding members (up to a multiple of ``devices``) repeat point 0 with the next seeds, so without a grid the
-    members are the seeds exactly as before grids existed."""
+    members are the seeds, in order."""
     real = len(spec.points) * seeds
     padded = padded_seeds(real, devices)
     point = [m // seeds for m in range(real)] + [0] * (padded - real)
@@ -81,7 +81,25 @@ def method_keys(seeds: list[int]) -> jax.Array:
     return _salted(seeds, METHOD_SALT)
 
 
-def eval_keys(seeds: list[int], purpose: int) -> jax.Array:
-    """Each seed's key for the evaluation ``purpose`` (1: backward transfer and, folded with
-    ``continual.LEARNT_SALT``, the learnt tasks' evaluations; 1000 + c: held-out after chunk c)."""
-    return _salted(seeds, EVAL_SALT, purpose)
+# The evaluations' streams under each seed's evaluation root (``eval_keys``): one for the evaluations of learnt
+# tasks (backward transfer, each task right after it is learnt and at every later evaluation), and one per
+# measurement of the held-out meta-test: measurement m (0: the initial policies, c + 1: after chunk c) draws from
+# HELDOUT_STREAM + m.
+TASKS_STREAM = 1
+HELDOUT_STREAM = 1000
+
+
+def eval_keys(seeds: list[int], stream: int) -> jax.Array:
+    """Each seed's key of evaluation stream ``stream`` (``task_eval_keys``, ``heldout_keys``)."""
+    return _salted(seeds, EVAL_SALT, stream)
+
+
+def task_eval_keys(seeds: list[int]) -> jax.Array:
+    """Each seed's key of the learnt tasks' evaluations: backward transfer (folded per task and previous task,
+    ``continual.evaluate_task``) and, folded with ``continual.LEARNT_SALT``, every evaluation of a learnt task."""
+    return eval_keys(seeds, TASKS_STREAM)
+
+
+def heldout_keys(seeds: list[int], measurement: int) -> jax.Array:
+    """Each seed's key of held-out measurement ``measurement`` (0: the initial policies, c + 1: after chunk c)."""
+    return eval_keys(seeds, HELDOUT_STREAM + measurement)

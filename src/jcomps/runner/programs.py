@@ -2,7 +2,7 @@
 
 Per method there are four programs (``PARTS``): ``init``, ``learn`` (one task at a position of the sequence; the
 host loops over positions, so one program serves every task), ``evaluate_task`` (backward transfer and the learnt
-task, after each task) and ``heldout`` (held-out meta-test and the learnt tasks, after each chunk). Each is a
+task, after each task) and ``measure`` (held-out meta-test and the learnt tasks, after each chunk). Each is a
 ``vmap`` over the members of a device and a ``shard_map`` over devices (``jcomps.runner.members``: the member axis);
 traced hyperparameters enter as one scalar per member, and the method is made inside the traced function from a
 config holding it. Programs compile ahead of time (``MethodProgram.compile``, timed, with a heartbeat while XLA
@@ -12,6 +12,7 @@ works) and live in a ``Programs`` cache owned by the caller, never in a module-l
 from __future__ import annotations
 
 import contextlib
+import inspect
 import threading
 import time
 from typing import Callable, NamedTuple, Optional
@@ -48,11 +49,11 @@ def _heartbeat(beat: Callable[[], None], interval: float = HEARTBEAT_SECONDS):
         thread.join()
 
 
-PARTS = ("init", "learn", "evaluate_task", "heldout")
+PARTS = ("init", "learn", "evaluate_task", "measure")
 """The compiled programs of a method (``MethodProgram``), in the order a run first needs them."""
 
 PART_NAMES = {"init": "init", "learn": "learning", "evaluate_task": "per-task evaluation",
-              "heldout": "held-out meta-test and learnt-task evaluation"}
+              "measure": "held-out meta-test and learnt-task evaluation"}
 """What each program is called in progress lines."""
 
 
@@ -76,8 +77,8 @@ class MethodProgram:
       positions, one program for every task;
     - ``evaluate_task``: the evaluations right after a task is learnt (backward transfer, the learnt task itself:
       ``continual.evaluate_task``);
-    - ``heldout``: after a chunk of tasks, the held-out adaptation and the learnt tasks' evaluation
-      (``continual.learnt_tasks``).
+    - ``measure``: after a chunk of tasks, the held-out adaptation and the learnt tasks' evaluation
+      (``continual.Measurement``: ``heldout_adaptation``, ``learnt_tasks``).
 
     Each holds the simulator once at most, so that the program on the critical path (``learn``) compiles alone and
     the evaluation programs can compile while the first task trains (``compile``: ahead of time, timed).
@@ -102,7 +103,6 @@ class MethodProgram:
 
         def learn(states, sequences, i, seed_index, hparams):
             self.traces["learn"] += 1
-            continual.check_capacity(make({}, None), jax.tree.leaves(sequences)[0].shape[1])
 
             def fn(s, q, m, h):
                 # The hook closes over the member's (traced) index: the method reports its task, we add who it is.
@@ -116,14 +116,14 @@ class MethodProgram:
             return jax.vmap(lambda s, q, k, h: continual.evaluate_task(make(h, None), eval_config, s, q, i, k))(
                 states, sequences, eval_keys, hparams)
 
-        def heldout(states, tasks, keys, sequences, learnt, eval_keys, seed_index, hparams):
-            self.traces["heldout"] += 1
+        def measure(states, tasks, keys, sequences, learnt, eval_keys, seed_index, hparams):
+            self.traces["measure"] += 1
 
             def fn(s, k, q, e, m, h):
                 method = make(h, None)
                 report = progress.with_fields(progress.host(self._receive), member=m)
-                return (continual.heldout_adaptation(method, eval_config, s, tasks, k, report),
-                        continual.learnt_tasks(method, eval_config, s, q, learnt, e))
+                return continual.Measurement(continual.heldout_adaptation(method, eval_config, s, tasks, k, report),
+                                             continual.learnt_tasks(method, eval_config, s, q, learnt, e))
 
             return jax.vmap(fn)(states, keys, sequences, eval_keys, seed_index, hparams)
 
@@ -133,13 +133,17 @@ class MethodProgram:
                 return continual.init_seeds(make({}, None), rngs)
             return continual.init_seeds(lambda h: make(h, None), rngs, hparams)
 
-        shard = lambda f, specs: jax.jit(jax.shard_map(f, mesh=mesh, in_specs=specs, out_specs=seed,  # noqa: E731
-                                                       check_vma=False))
+        def shard(f, shared: frozenset):
+            """``f`` jitted with its arguments split over the devices along the members' axis, but for those
+            named in ``shared`` (the same on every device), and its outputs split the same way."""
+            specs = tuple(P() if name in shared else seed for name in inspect.signature(f).parameters)
+            return jax.jit(jax.shard_map(f, mesh=mesh, in_specs=specs, out_specs=seed, check_vma=False))
+
         # Initialisation runs on one device (member by member, see continual.init_seeds), then is split over them.
         self._init = jax.jit(init)
-        self._learn = shard(learn, (seed, seed, P(), seed, seed))
-        self._evaluate_task = shard(evaluate_task, (seed, seed, P(), seed, seed))
-        self._heldout = shard(heldout, (seed, P(), seed, seed, P(), seed, seed, seed))
+        self._learn = shard(learn, shared=frozenset({"i"}))
+        self._evaluate_task = shard(evaluate_task, shared=frozenset({"i"}))
+        self._measure = shard(measure, shared=frozenset({"tasks", "learnt"}))
         self.sharding = jax.sharding.NamedSharding(mesh, seed)
 
     def _receive(self, metrics: dict):
@@ -180,24 +184,27 @@ class MethodProgram:
         """``continual.TaskEvaluation`` [members] of ``states``, right after learning the task at position ``i``."""
         return self._call("evaluate_task", states, sequences, i, eval_keys, hparams or {})
 
-    def run_chunk(self, states, sequences, start, eval_keys, seed_index, hparams: Optional[dict] = None):
-        """(states, ChunkMetrics [members, chunk]): ``learn`` then ``evaluate_task`` for the ``chunk`` positions
-        from ``start`` (an int); positions past the end of the sequence are not run and report zeros."""
-        num_tasks = jax.tree.leaves(sequences)[0].shape[1]
-        out = []
-        for i in range(int(start), int(start) + self.chunk):
-            if i >= num_tasks:
-                out.append(jax.tree.map(jnp.zeros_like, out[-1]))
-                continue
-            states, metrics = self.learn(states, sequences, np.int32(i), seed_index, hparams)
-            out.append(continual.chunk_metrics(metrics, self.evaluate_task(states, sequences, np.int32(i),
-                                                                           eval_keys, hparams)))
-        return states, jax.tree.map(lambda *x: jnp.stack(x, axis=1), *out)
+    def learn_chunk(self, states, sequences, start: int, stop: int, eval_keys, seed_index,
+                    hparams: Optional[dict] = None, after_learn: Optional[Callable] = None):
+        """(states, ChunkMetrics [members, stop - start]) after learning the tasks at positions ``start`` ..
+        ``stop - 1`` of ``sequences`` in turn, each evaluated right after it is learnt (``learn``, then
+        ``evaluate_task``): the runner's chunk of tasks, the one way a chunk runs. ``after_learn(states)`` is
+        called after each ``learn`` is dispatched, before its evaluation (the runner compiles the evaluation
+        programs there, while the first task trains)."""
+        task_metrics = []
+        for i in range(start, stop):
+            states, learnt = self.learn(states, sequences, np.int32(i), seed_index, hparams)
+            if after_learn is not None:
+                after_learn(states)
+            evaluation = self.evaluate_task(states, sequences, np.int32(i), eval_keys, hparams)
+            task_metrics.append(continual.chunk_metrics(learnt, evaluation))
+        return states, jax.tree.map(lambda *x: jnp.stack(x, axis=1), *task_metrics)
 
-    def heldout(self, states, tasks, keys, sequences, learnt, eval_keys, seed_index, hparams: Optional[dict] = None):
-        """(HeldoutMetrics on ``tasks`` with ``keys``, Evaluation [members, num_tasks] of the ``learnt`` (i32[]) first
-        tasks of ``sequences`` with ``eval_keys``, the backward-transfer keys)."""
-        return self._call("heldout", states, tasks, keys, sequences, learnt, eval_keys, seed_index, hparams or {})
+    def measure(self, states, tasks, keys, sequences, learnt, eval_keys, seed_index, hparams: Optional[dict] = None):
+        """``continual.Measurement`` [members]: HeldoutMetrics on ``tasks`` with ``keys``, and the Evaluation
+        [members, num_tasks] of the ``learnt`` (i32[]) first tasks of ``sequences`` with ``eval_keys``, the
+        learnt tasks' keys."""
+        return self._call("measure", states, tasks, keys, sequences, learnt, eval_keys, seed_index, hparams or {})
 
     def put(self, tree):
         """Places host arrays with a leading member axis on the devices, split along that axis (with several

@@ -37,7 +37,7 @@ class RawResults(NamedTuple):
         (``continual.learnt_tasks``; valid False where not evaluated: tasks not yet learnt, and with
         ``learnt_eval=end`` every measurement before the last task).
 
-    The last three are None in runs made before they existed (issue 28).
+    The last three are None in runs made before jcomps measured them (``results.load`` reads such runs).
     """
 
     task: TaskMetrics
@@ -99,7 +99,7 @@ def _upgrade(arrays: dict) -> dict:
 
 
 def _add_value_ev(arrays: dict) -> dict:
-    """The RL step's metrics of a run made before the critic's explained variance was reported (issue 44): NaN."""
+    """The RL step's metrics of a run made before the critic's explained variance was reported: NaN."""
     if "task.per_iteration.value_ev" in arrays or "task.per_iteration.valid" not in arrays:
         return arrays
     shape = np.shape(arrays["task.per_iteration.valid"])
@@ -107,7 +107,7 @@ def _add_value_ev(arrays: dict) -> dict:
 
 
 def _add_inner_gain(arrays: dict) -> dict:
-    """The meta step's health of a run made before the inner step's gain was measured (issue 43): NaN gains."""
+    """The meta step's health of a run made before the inner step's gain was measured: NaN gains."""
     for part in ("steps", "start", "end"):
         loss = arrays.get(f"task.meta.{part}.bc_loss")
         if loss is not None and f"task.meta.{part}.inner_gain" not in arrays:

@@ -25,16 +25,8 @@ import optax
 
 from jcomps import progress
 from jcomps.numerics import (
-    all_finite,
-    check_field,
-    check_finite_fields,
-    guarded_update,
-    keep_if_finite,
-    masked_explained_variance,
-    masked_mean,
-    masked_standardize,
-    masked_var,
-    optimizer_step,
+    all_finite, check_field, check_finite_fields, guarded_update, holds_tracers, keep_if_finite,
+    masked_explained_variance, masked_mean, masked_standardize, masked_var, optimizer_step,
 )
 from jcomps.progress import ProgressFn
 from jcomps.training import buffers, networks, vtrace
@@ -88,23 +80,25 @@ class MetaConfig:
     ``reward_scale`` (the units its value function learnt; CoMPS resolves it), 1.0 where there is no RL step."""
     value_init: str = "rl_step"
     """How a new task's value head starts: ``rl_step``, a copy of the RL step's trained value function (fitted to
-    the very data D_i holds); ``random``, its random initialisation (before issue 27)."""
+    the very data D_i holds); ``random``, its random initialisation (an ablation: the head then
+    starts far from the returns it must fit)."""
     value_fit_steps: int = 200
     """Full-batch Adam steps (``value_fit_learning_rate``, a fresh Adam state) that fit a new task's head to the
     discounted returns of D_i before its first meta step (on-policy V-trace targets: the behaviour policy's own
-    returns, bootstrapped by the head at the time limit); 0: none (before issue 27)."""
+    returns, bootstrapped by the head at the time limit); 0: none (an ablation)."""
     value_fit_learning_rate: float = 1e-3
     """Adam learning rate of that fit."""
     optimizer_state: str = "reset"
     """The meta step's Adam states (policy and value heads) at the start of a meta phase: ``reset``, fresh for every
     meta phase (the moments of the last phase belong to another θ: the warm start jumps it); ``carry``, as the last
-    meta phase left them (before issue 27; docs/design.md has both measured)."""
+    meta phase left them (docs/log.md, "The ablation ladder: one feature per rung", has both
+    measured)."""
     outer_loss: str = "nll"
     """The outer (imitation) loss on D*_j: ``nll``, −mean log π_φ(a|s), the Gaussian negative log-likelihood with the
     learned std (the paper's Eq. 1: the meta step also sets the next task's exploration std); ``mean_mse``, the mean
     squared error of the policy's mean action (averaged over action dimensions), the std kept out of the meta step
     (its outer gradient is zero, so θ's std stays where the meta phase started), as the authors' code cloned
-    (docs/design.md has both measured)."""
+    (docs/results.md, "The ladder as the paper's authors ran it", has both measured)."""
     outer_update: str = "mean"
     """How θ is updated: ``mean``, one Adam step on the mean over seen tasks per outer step; ``sequential``,
     Algorithm 1 read literally: per meta step, task after task (newest last), ``num_outer_steps`` Adam steps on
@@ -118,6 +112,8 @@ class MetaConfig:
     """Fields that may hold traced scalars (a hyperparameter-grid axis inside one compiled program)."""
 
     def __post_init__(self):
+        if holds_tracers(self):  # a traced grid value (``numerics.holds_tracers``)
+            return
         check_finite_fields(self)
         for name in ("outer_learning_rate", "value_fit_learning_rate", "rho_bar", "c_bar", "pg_rho_bar"):
             check_field(getattr(self, name) > 0, name, getattr(self, name), "a number > 0")

@@ -23,11 +23,7 @@ import optax
 
 from jcomps.envs.base import Family
 from jcomps.numerics import (
-    check_field,
-    check_finite_fields,
-    guarded_update,
-    masked_explained_variance,
-    masked_mean,
+    check_field, check_finite_fields, guarded_update, holds_tracers, masked_explained_variance, masked_mean,
     masked_standardize,
 )
 from jcomps.progress import ProgressFn
@@ -87,6 +83,8 @@ class PPOConfig:
     field changes shapes or Python control flow."""
 
     def __post_init__(self):
+        if holds_tracers(self):  # a traced grid value (``numerics.holds_tracers``)
+            return
         check_finite_fields(self)
         check_field(self.num_trajectories >= 1, "num_trajectories", self.num_trajectories, "an integer >= 1")
         check_field(self.num_updates >= 0, "num_updates", self.num_updates, "an integer >= 0")
