@@ -191,3 +191,11 @@ def test_a_corrupt_run_json_is_named_by_the_report_and_the_resume(runner, report
             main(argv)
         err = capsys.readouterr().err
         assert info.value.code == 2 and str(bad / "run.json") in err and "Traceback" not in err
+
+
+def test_a_run_config_holds_tasks_by_their_canonical_names():
+    assert description.canonical_tasks("point_goal", ["10.0", "-45.50"]) == ("10", "-45.5")
+    assert description.RunConfig(num_tasks=2, tasks=("10", "-45.5")).tasks == ("10", "-45.5")
+    with pytest.raises(ValueError, match=r"tasks=\('10.0', '-45.50'\); allowed: the tasks by their canonical names "
+                                         r"\(10, -45.5"):
+        description.RunConfig(num_tasks=2, tasks=("10.0", "-45.50"))

@@ -177,7 +177,7 @@ def default_config(name: str, family: Family | str):
 
 def resolve_config(name: str, family: Family | str, *, stored: Optional[Mapping] = None,
                    shared: Optional[Mapping] = None, num_tasks: Optional[int] = None,
-                   overrides: Optional[Mapping] = None):
+                   overrides: Optional[Mapping] = None, default=None):
     """Method ``name``'s full config on ``family``, from its layers, each over the ones before:
 
     1. its registered default (``REGISTRY``);
@@ -192,8 +192,9 @@ def resolve_config(name: str, family: Family | str, *, stored: Optional[Mapping]
 
     A hyperparameter grid's points are the last layer (``jcomps.runner.grid.points`` over this config). Every layer is
     validated by the config classes' checks (ValueError naming the field); ``overrides``' errors name ``--set``.
+    ``default``: layers 1 and 2 when the caller has built them (``default_config(name, family)``).
     """
-    config = default_config(name, family)
+    config = default_config(name, family) if default is None else default
     if stored:
         config = configs.config_from_dict(config, with_earlier_values(stored))
     if shared:

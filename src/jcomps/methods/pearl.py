@@ -44,6 +44,7 @@ IterationMetrics fields: ``policy_loss`` is the actor loss, ``value_loss`` the c
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any, ClassVar, NamedTuple, Optional
 
 import jax
@@ -389,156 +390,218 @@ def alpha_objective(log_alpha, log_prob: jax.Array, mask: jax.Array, target_entr
     return jnp.sum(weight * jnp.exp(log_alpha) * jax.lax.stop_gradient(-log_prob - target_entropy))
 
 
-def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optional[ProgressFn] = None) -> Method:
-    """PEARL on ``family``: ``init`` and ``learn_task`` as every method (``jcomps.methods.base``)."""
+class Setup(NamedTuple):
+    """What PEARL's functions share for one family and config, built once by ``setup``; every function below
+    takes it first (``make`` binds it)."""
+
+    config: PEARLConfig
+    family: Family
+    nets: Networks
+    actor: acting.Actor
+    critic_loss_fn: Any
+    """brax's SAC critic loss with this config's reward scale and discount."""
+    optimizer: optax.GradientTransformation
+    budget: int
+    num_updates: int
+    """Gradient steps per iteration."""
+    capacity: int
+    """Transitions per task slot of the replay."""
+    n_prior: int
+    """Episodes per iteration with z from the prior (``context_source="prior"``; 0 otherwise)."""
+    n_initial: int
+    """Episodes with z from the prior before a task's first iteration."""
+    target_entropy: float
+
+    @property
+    def from_prior(self) -> bool:
+        return self.config.context_source == "prior"
+
+    @property
+    def n_post(self) -> int:
+        """Episodes per iteration with z from the posterior."""
+        return self.config.num_trajectories - self.n_prior
+
+    @property
+    def valid_only(self) -> bool:
+        """Where episodes can end early, rows after the end are stored but are no transitions: draw among the
+        valid ones, so every slot gets full batches and contexts (oyster stores only the steps taken)."""
+        return self.family.can_terminate
+
+
+def setup(family: Family, config: PEARLConfig) -> Setup:
     nets = make_networks(config, family)
-    actor = make_actor(nets)
-    budget = config.budget_for(family)
-    num_updates = config.updates_for(family)
     batch = config.num_trajectories * family.max_steps
-    capacity = buffers.transition_capacity(config.buffer_size, batch)
-    from_prior = config.context_source == "prior"
-    n_prior = config.prior_episodes if from_prior else 0
-    n_post = config.num_trajectories - n_prior
-    n_initial = config.initial_episodes(family)
-    # Where episodes can end early, rows after the end are stored but are no transitions: draw among the valid
-    # ones, so every slot gets full batches and contexts (oyster stores only the steps taken).
-    valid_only = family.can_terminate
     _, critic_loss_fn, _ = sac_losses.make_losses(nets.sac, reward_scaling=config.reward_scale,
                                                   discounting=config.discount, action_size=family.action_size)
-    target_entropy = -0.5 * family.action_size  # brax's
-    optimizer = optax.adam(config.learning_rate)
+    return Setup(config, family, nets, make_actor(nets), critic_loss_fn, optax.adam(config.learning_rate),
+                 budget=config.budget_for(family), num_updates=config.updates_for(family),
+                 capacity=buffers.transition_capacity(config.buffer_size, batch),
+                 n_prior=config.prior_episodes if config.context_source == "prior" else 0,
+                 n_initial=config.initial_episodes(family),
+                 target_entropy=-0.5 * family.action_size)  # brax's
 
-    def init(rng: jax.Array) -> PEARLState:
-        rng, k_pi, k_q, k_enc = jax.random.split(rng, 4)
-        policy = {"net": nets.sac.policy_network.init(k_pi), "z": jnp.zeros((config.latent_size,), jnp.float32)}
-        q = nets.sac.q_network.init(k_q)
-        encoder = nets.encoder.init(k_enc, jnp.zeros((1, nets.context_size), jnp.float32))
-        log_alpha = jnp.log(jnp.asarray(config.alpha, jnp.float32))
-        example = buffers.rollout_example(family, config.num_trajectories)
-        replay = buffers.transitions_init_like(example, config.max_tasks, capacity)
-        contexts = buffers.transitions_init_like(example, config.max_tasks, n_prior * family.max_steps)
-        return PEARLState(networks.ActorCriticParams(policy, ()), q, q, encoder, optimizer.init(policy["net"]),
-                          optimizer.init((q, encoder)), optimizer.init(log_alpha), log_alpha, replay, contexts, rng,
-                          jnp.int32(0))
 
-    def context_store(state: PEARLState) -> buffers.TransitionStore:
-        """The store contexts are drawn from (``context_source``)."""
-        return state.contexts if from_prior else state.replay
+def init(p: Setup, rng: jax.Array) -> PEARLState:
+    config, family = p.config, p.family
+    rng, k_pi, k_q, k_enc = jax.random.split(rng, 4)
+    policy = {"net": p.nets.sac.policy_network.init(k_pi), "z": jnp.zeros((config.latent_size,), jnp.float32)}
+    q = p.nets.sac.q_network.init(k_q)
+    encoder = p.nets.encoder.init(k_enc, jnp.zeros((1, p.nets.context_size), jnp.float32))
+    log_alpha = jnp.log(jnp.asarray(config.alpha, jnp.float32))
+    example = buffers.rollout_example(family, config.num_trajectories)
+    replay = buffers.transitions_init_like(example, config.max_tasks, p.capacity)
+    contexts = buffers.transitions_init_like(example, config.max_tasks, p.n_prior * family.max_steps)
+    return PEARLState(networks.ActorCriticParams(policy, ()), q, q, encoder, p.optimizer.init(policy["net"]),
+                      p.optimizer.init((q, encoder)), p.optimizer.init(log_alpha), log_alpha, replay, contexts, rng,
+                      jnp.int32(0))
 
-    def draw_z(encoder, store, slot, rng, shape=()):
-        """z from the posterior of one context of ``slot``, ``shape`` draws of it."""
-        k_ctx, k_z = jax.random.split(rng)
-        context, mask = sample_context(config, store, slot, k_ctx, valid_only)
-        mu, var = posterior(config, nets, encoder, context, mask)
-        return mu + jnp.sqrt(var) * jax.random.normal(k_z, shape + mu.shape, jnp.float32)
 
-    def prior_z(rng, episodes):
-        return jax.random.normal(rng, (episodes, config.latent_size), jnp.float32)
+def context_store(p: Setup, state: PEARLState) -> buffers.TransitionStore:
+    """The store contexts are drawn from (``context_source``)."""
+    return state.contexts if p.from_prior else state.replay
 
-    def collect(state: PEARLState, task, slot, k_z, k_roll):
-        """One iteration's episodes and what they change: (state with its buffers written, the episodes that give
-        the iteration's success rate and return, whether every episode is finite)."""
-        if from_prior:  # oyster: prior-z episodes fill the emptied encoder buffer, posterior ones the replay only
-            (k_zp, k_ctx), (k_prior, k_post) = jax.random.split(k_z), jax.random.split(k_roll)
-            prior = acting.rollout(family, {**state.params.policy, "z": prior_z(k_zp, n_prior)}, task, k_prior,
-                                   n_prior, actor=actor)
-            contexts = buffers.transitions_add(buffers.transitions_clear(state.contexts, slot), slot, prior)
-            z = jax.vmap(lambda k: draw_z(state.encoder, contexts, slot, k))(jax.random.split(k_ctx, n_post))
-            post = acting.rollout(family, {**state.params.policy, "z": z}, task, k_post, n_post, actor=actor)
-            replay = buffers.transitions_add(buffers.transitions_add(state.replay, slot, prior), slot, post)
-            finite = all_finite((prior.obs, prior.reward, post.obs, post.reward))
-            return state._replace(replay=replay, contexts=contexts), post, finite
-        z = draw_z(state.encoder, state.replay, slot, k_z, (config.num_trajectories,))
-        traj = acting.rollout(family, {**state.params.policy, "z": z}, task, k_roll, config.num_trajectories,
-                              actor=actor)
-        finite = all_finite((traj.obs, traj.reward))
-        return state._replace(replay=buffers.transitions_add(state.replay, slot, traj)), traj, finite
 
-    def gradient_step(state: PEARLState, key: jax.Array):
-        k_slots, k_rows, k_ctx, k_critic, k_actor = jax.random.split(key, 5)
-        slots = draw_slots(config, state.replay.count, state.task_index, k_slots)
-        rows, mask = jax.vmap(lambda s, k: buffers.transitions_sample(state.replay, s, config.minibatch_size, k,
-                                                                      valid_only))(
-            slots, jax.random.split(k_rows, config.meta_batch))
-        contexts, context_mask = jax.vmap(lambda s, k: sample_context(config, context_store(state), s, k,
-                                                                      valid_only))(
-            slots, jax.random.split(k_ctx, config.meta_batch))
-        alpha = jnp.exp(state.log_alpha)
-        policy_net = state.params.policy["net"]
-        (_, (q_loss, kl, z)), g_critic = critic_grad(config, nets, critic_loss_fn, (state.q, state.encoder),
-                                                     policy_net, state.target_q, alpha, rows, mask, contexts,
-                                                     context_mask, k_critic)
-        (q, encoder), critic_opt = optimizer_step(optimizer, g_critic, state.critic_opt, (state.q, state.encoder))
-        obs_z = with_latent(rows["obs"], z[:, None, :]).reshape((-1, family.obs_size + config.latent_size))
-        flat_mask = mask.reshape(-1)
-        (actor_loss, log_prob), g_pi = actor_grad(config, nets, policy_net, q, alpha, obs_z, flat_mask, k_actor)
-        new_policy_net, policy_opt = optimizer_step(optimizer, g_pi, state.policy_opt, policy_net)
-        if config.auto_alpha:  # on the actor's samples, before its step (brax's order)
-            g_alpha = jax.grad(alpha_objective)(state.log_alpha, log_prob, flat_mask, target_entropy)
-            log_alpha, alpha_opt = optimizer_step(optimizer, g_alpha, state.alpha_opt, state.log_alpha)
-        else:
-            g_alpha, alpha_opt, log_alpha = jnp.float32(0.0), state.alpha_opt, state.log_alpha
-        target_q = polyak(state.target_q, q, config.tau)
-        new = state._replace(params=state.params._replace(policy={**state.params.policy, "net": new_policy_net}),
-                             q=q, target_q=target_q, encoder=encoder, policy_opt=policy_opt, critic_opt=critic_opt,
-                             alpha_opt=alpha_opt, log_alpha=log_alpha)
-        terms = rl_loop.UpdateTerms(actor_loss, q_loss, -masked_mean(log_prob, flat_mask), kl, jnp.float32(0.0))
-        finite = all_finite((terms, g_alpha, g_critic, g_pi))
-        return keep_if_finite(finite, new, state), terms, ~finite
+def draw_z(p: Setup, encoder, store: buffers.TransitionStore, slot, rng: jax.Array, shape=()) -> jax.Array:
+    """z from the posterior of one context of ``slot``, ``shape`` draws of it."""
+    k_ctx, k_z = jax.random.split(rng)
+    context, mask = sample_context(p.config, store, slot, k_ctx, p.valid_only)
+    mu, var = posterior(p.config, p.nets, encoder, context, mask)
+    return mu + jnp.sqrt(var) * jax.random.normal(k_z, shape + mu.shape, jnp.float32)
 
-    def update(state: PEARLState, _, key: jax.Array):
-        def step(carry, key):
-            s, bad = carry
-            s, terms, nonfinite = gradient_step(s, key)
-            return (s, bad | nonfinite), terms
 
-        (state, bad), terms = jax.lax.scan(step, (state, jnp.array(False)), jax.random.split(key, num_updates))
-        return state, rl_loop.mean_terms(terms)._replace(value_ev=jnp.float32(jnp.nan)), bad  # (Q-critics)
+def prior_z(p: Setup, rng: jax.Array, episodes: int) -> jax.Array:
+    return jax.random.normal(rng, (episodes, p.config.latent_size), jnp.float32)
 
-    def learn_task(state: PEARLState, task) -> tuple[PEARLState, TaskMetrics]:
-        slot = state.task_index
 
-        def collect_iteration(state: PEARLState, aux, keys, it):
-            state, traj, finite = collect(state, task, slot, *keys)
-            return state, aux, rl_loop.Collected(None, *rl_loop.episode_stats(family, traj), finite)
+def rollout(p: Setup, state: PEARLState, z: jax.Array, task, rng: jax.Array, episodes: int):
+    """``episodes`` episodes on ``task``, episode n acting with z[n]."""
+    return acting.rollout(p.family, {**state.params.policy, "z": z}, task, rng, episodes, actor=p.actor)
 
-        if n_initial:  # oyster's num_initial_steps, with z from the prior, before the task's first iteration
-            rng, k_z, k_roll = jax.random.split(state.rng, 3)
-            initial = acting.rollout(family, {**state.params.policy, "z": prior_z(k_z, n_initial)}, task, k_roll,
-                                     n_initial, actor=actor)
-            state = state._replace(replay=buffers.transitions_add(state.replay, slot, initial), rng=rng)
-        out = rl_loop.iterate(collect_iteration, update, state, state.rng, threshold=family.success_threshold,
-                              budget=budget, collect_keys=2,
-                              progress_fn=with_fields(progress_fn, task=state.task_index))
-        s = out.state
-        rng, k_z = jax.random.split(out.rng)
-        z = draw_z(s.encoder, context_store(s), slot, k_z)
-        s = s._replace(params=s.params._replace(policy={**s.params.policy, "z": z}), rng=rng,
-                       task_index=state.task_index + 1)
-        return s, TaskMetrics(out.iterations, out.solved, out.metrics)
 
-    def policy_for(state: PEARLState, slot, task, rng):  # z from the slot's data, not the task's
-        return {**state.params.policy, "z": draw_z(state.encoder, context_store(state), slot, rng)}
+def collect(p: Setup, state: PEARLState, task, slot, k_z, k_roll):
+    """One iteration's episodes and what they change: (state with its buffers written, the episodes that give the
+    iteration's success rate and return, whether every episode is finite)."""
+    if p.from_prior:  # oyster: prior-z episodes fill the emptied encoder buffer, posterior ones the replay only
+        (k_zp, k_ctx), (k_prior, k_post) = jax.random.split(k_z), jax.random.split(k_roll)
+        prior = rollout(p, state, prior_z(p, k_zp, p.n_prior), task, k_prior, p.n_prior)
+        contexts = buffers.transitions_add(buffers.transitions_clear(state.contexts, slot), slot, prior)
+        z = jax.vmap(lambda k: draw_z(p, state.encoder, contexts, slot, k))(jax.random.split(k_ctx, p.n_post))
+        post = rollout(p, state, z, task, k_post, p.n_post)
+        replay = buffers.transitions_add(buffers.transitions_add(state.replay, slot, prior), slot, post)
+        finite = all_finite((prior.obs, prior.reward, post.obs, post.reward))
+        return state._replace(replay=replay, contexts=contexts), post, finite
+    z = draw_z(p, state.encoder, state.replay, slot, k_z, (p.config.num_trajectories,))
+    traj = rollout(p, state, z, task, k_roll, p.config.num_trajectories)
+    finite = all_finite((traj.obs, traj.reward))
+    return state._replace(replay=buffers.transitions_add(state.replay, slot, traj)), traj, finite
 
-    def adapt(state: PEARLState, task, rng, iterations: int):
-        def one(carry, key):
-            prev, has_prev = carry
-            k_ctx, k_z, k_roll = jax.random.split(key, 3)
-            idx = jax.random.randint(k_ctx, (config.context_size,), 0, prev["reward"].shape[0])
-            rows = jax.tree.map(lambda x: x[idx], prev)
-            mask = rows.pop("valid") * has_prev.astype(jnp.float32)
-            mu, var = posterior(config, nets, state.encoder, context_features(config, rows), mask)
-            z = mu + jnp.sqrt(var) * jax.random.normal(k_z, (config.num_trajectories,) + mu.shape, jnp.float32)
-            traj = acting.rollout(family, {**state.params.policy, "z": z}, task, k_roll, config.num_trajectories,
-                                  actor=actor)
-            return (buffers.finite_transitions(traj), jnp.array(True)), rl_loop.episode_stats(family, traj)
 
-        z = lambda *shape: jnp.zeros((batch,) + shape, jnp.float32)  # noqa: E731
-        empty = {"obs": z(family.obs_size), "action": z(family.action_size), "reward": z(),
-                 "next_obs": z(family.obs_size), "done": z(), "valid": z()}
-        _, (returns, success) = jax.lax.scan(one, (empty, jnp.array(False)), jax.random.split(rng, iterations))
-        return returns, success
+def gradient_step(p: Setup, state: PEARLState, key: jax.Array):
+    """One SAC step of critic and encoder, actor and (``auto_alpha``) temperature on ``meta_batch`` task slots:
+    (state, its UpdateTerms, whether it was not finite and so not taken)."""
+    config = p.config
+    k_slots, k_rows, k_ctx, k_critic, k_actor = jax.random.split(key, 5)
+    slots = draw_slots(config, state.replay.count, state.task_index, k_slots)
+    rows, mask = jax.vmap(lambda s, k: buffers.transitions_sample(state.replay, s, config.minibatch_size, k,
+                                                                  p.valid_only))(
+        slots, jax.random.split(k_rows, config.meta_batch))
+    contexts, context_mask = jax.vmap(lambda s, k: sample_context(config, context_store(p, state), s, k,
+                                                                  p.valid_only))(
+        slots, jax.random.split(k_ctx, config.meta_batch))
+    alpha = jnp.exp(state.log_alpha)
+    policy_net = state.params.policy["net"]
+    (_, (q_loss, kl, z)), g_critic = critic_grad(config, p.nets, p.critic_loss_fn, (state.q, state.encoder),
+                                                 policy_net, state.target_q, alpha, rows, mask, contexts,
+                                                 context_mask, k_critic)
+    (q, encoder), critic_opt = optimizer_step(p.optimizer, g_critic, state.critic_opt, (state.q, state.encoder))
+    obs_z = with_latent(rows["obs"], z[:, None, :]).reshape((-1, p.family.obs_size + config.latent_size))
+    flat_mask = mask.reshape(-1)
+    (actor_loss, log_prob), g_pi = actor_grad(config, p.nets, policy_net, q, alpha, obs_z, flat_mask, k_actor)
+    new_policy_net, policy_opt = optimizer_step(p.optimizer, g_pi, state.policy_opt, policy_net)
+    if config.auto_alpha:  # on the actor's samples, before its step (brax's order)
+        g_alpha = jax.grad(alpha_objective)(state.log_alpha, log_prob, flat_mask, p.target_entropy)
+        log_alpha, alpha_opt = optimizer_step(p.optimizer, g_alpha, state.alpha_opt, state.log_alpha)
+    else:
+        g_alpha, alpha_opt, log_alpha = jnp.float32(0.0), state.alpha_opt, state.log_alpha
+    target_q = polyak(state.target_q, q, config.tau)
+    new = state._replace(params=state.params._replace(policy={**state.params.policy, "net": new_policy_net}),
+                         q=q, target_q=target_q, encoder=encoder, policy_opt=policy_opt, critic_opt=critic_opt,
+                         alpha_opt=alpha_opt, log_alpha=log_alpha)
+    terms = rl_loop.UpdateTerms(actor_loss, q_loss, -masked_mean(log_prob, flat_mask), kl, jnp.float32(0.0))
+    finite = all_finite((terms, g_alpha, g_critic, g_pi))
+    return keep_if_finite(finite, new, state), terms, ~finite
 
-    return Method("pearl", config, family, init, learn_task, env_steps_before_task=n_initial * family.max_steps,
-                  actor=actor, policy_for=policy_for, adapt=adapt)
+
+def update(p: Setup, state: PEARLState, _, key: jax.Array):
+    """An iteration's ``num_updates`` gradient steps (``rl_loop.iterate``'s update)."""
+    def step(carry, key):
+        s, bad = carry
+        s, terms, nonfinite = gradient_step(p, s, key)
+        return (s, bad | nonfinite), terms
+
+    (state, bad), terms = jax.lax.scan(step, (state, jnp.array(False)), jax.random.split(key, p.num_updates))
+    return state, rl_loop.mean_terms(terms)._replace(value_ev=jnp.float32(jnp.nan)), bad  # (Q-critics)
+
+
+def learn_task(p: Setup, progress_fn: Optional[ProgressFn], state: PEARLState, task) -> tuple[PEARLState,
+                                                                                             TaskMetrics]:
+    slot = state.task_index
+
+    def collect_iteration(state: PEARLState, aux, keys, it):
+        state, traj, finite = collect(p, state, task, slot, *keys)
+        return state, aux, rl_loop.Collected(None, *rl_loop.episode_stats(p.family, traj), finite)
+
+    if p.n_initial:  # oyster's num_initial_steps, with z from the prior, before the task's first iteration
+        rng, k_z, k_roll = jax.random.split(state.rng, 3)
+        initial = rollout(p, state, prior_z(p, k_z, p.n_initial), task, k_roll, p.n_initial)
+        state = state._replace(replay=buffers.transitions_add(state.replay, slot, initial), rng=rng)
+    out = rl_loop.iterate(collect_iteration, functools.partial(update, p), state, state.rng,
+                          threshold=p.family.success_threshold, budget=p.budget, collect_keys=2,
+                          progress_fn=with_fields(progress_fn, task=state.task_index))
+    s = out.state
+    rng, k_z = jax.random.split(out.rng)
+    z = draw_z(p, s.encoder, context_store(p, s), slot, k_z)
+    s = s._replace(params=s.params._replace(policy={**s.params.policy, "z": z}), rng=rng,
+                   task_index=state.task_index + 1)
+    return s, TaskMetrics(out.iterations, out.solved, out.metrics)
+
+
+def policy_for(p: Setup, state: PEARLState, slot, task, rng):
+    """The policy with z from the posterior of a context of ``slot``'s data (not of ``task``'s)."""
+    return {**state.params.policy, "z": draw_z(p, state.encoder, context_store(p, state), slot, rng)}
+
+
+def adapt(p: Setup, state: PEARLState, task, rng: jax.Array, iterations: int):
+    """PEARL's meta-test on ``task``: adaptation by inference, (returns, success rates) f32[iterations]."""
+    config, family = p.config, p.family
+
+    def one(carry, key):
+        prev, has_prev = carry
+        k_ctx, k_z, k_roll = jax.random.split(key, 3)
+        idx = jax.random.randint(k_ctx, (config.context_size,), 0, prev["reward"].shape[0])
+        rows = jax.tree.map(lambda x: x[idx], prev)
+        mask = rows.pop("valid") * has_prev.astype(jnp.float32)
+        mu, var = posterior(config, p.nets, state.encoder, context_features(config, rows), mask)
+        z = mu + jnp.sqrt(var) * jax.random.normal(k_z, (config.num_trajectories,) + mu.shape, jnp.float32)
+        traj = rollout(p, state, z, task, k_roll, config.num_trajectories)
+        return (buffers.finite_transitions(traj), jnp.array(True)), rl_loop.episode_stats(family, traj)
+
+    batch = config.num_trajectories * family.max_steps
+    z = lambda *shape: jnp.zeros((batch,) + shape, jnp.float32)  # noqa: E731
+    empty = {"obs": z(family.obs_size), "action": z(family.action_size), "reward": z(),
+             "next_obs": z(family.obs_size), "done": z(), "valid": z()}
+    _, (returns, success) = jax.lax.scan(one, (empty, jnp.array(False)), jax.random.split(rng, iterations))
+    return returns, success
+
+
+def make(family: Family, config: PEARLConfig = PEARLConfig(), progress_fn: Optional[ProgressFn] = None) -> Method:
+    """PEARL on ``family``: ``init`` and ``learn_task`` as every method (``jcomps.methods.base``), with
+    ``policy_for`` and ``adapt``; the functions above bound to one ``Setup``."""
+    p = setup(family, config)
+
+    def bind(fn, *args):  # a partial that keeps fn's name and source (chex.assert_max_traces reads them)
+        return functools.update_wrapper(functools.partial(fn, *args), fn)
+
+    return Method("pearl", config, family, bind(init, p), bind(learn_task, p, progress_fn),
+                  env_steps_before_task=p.n_initial * family.max_steps, actor=p.actor,
+                  policy_for=bind(policy_for, p), adapt=bind(adapt, p))

@@ -62,19 +62,26 @@ class RunConfig:
             check_field(self.num_tasks == len(self.tasks), "num_tasks", self.num_tasks,
                         f"the number of tasks given ({len(self.tasks)}; the command line sets it when "
                         f"--num-tasks is left out)")
-            family = envs.make(self.family)
-            try:
-                family.parse_values(self.tasks)
-            except ValueError as err:
-                raise ValueError(f"tasks: {err}") from None
-            # kept by canonical name, so that "10.0" and "10", or "102" and "B-2", are one run (resume, merge)
-            object.__setattr__(self, "tasks", tuple(family.task_name(family.parse_value(t)) for t in self.tasks))
+            canonical = canonical_tasks(self.family, self.tasks)
+            check_field(self.tasks == canonical, "tasks", self.tasks,
+                        f"the tasks by their canonical names ({', '.join(canonical)}: canonical_tasks)")
         check_field(self.chunk_tasks >= 1, "chunk_tasks", self.chunk_tasks, "an integer >= 1")
 
     @property
     def seed_list(self) -> list[int]:
         """The seeds, in order."""
         return list(range(self.seed, self.seed + self.seeds))
+
+
+def canonical_tasks(family: str, tasks) -> tuple[str, ...]:
+    """``tasks`` in ``family``'s terms by their canonical names, which a ``RunConfig`` holds, so that "10.0" and
+    "10", or "102" and "B-2", are one run (resume, merge); ValueError naming ``tasks`` for one that is no task."""
+    family = envs.make(family)
+    try:
+        family.parse_values(tasks)  # range-checked
+        return tuple(family.task_name(family.parse_value(t)) for t in tasks)
+    except ValueError as err:
+        raise ValueError(f"tasks: {err}") from None
 
 
 FORMAT = 2
@@ -240,12 +247,14 @@ def from_json(data: Mapping, source: str = "run.json") -> RunDescription:
         if not isinstance(stored, dict):
             raise RunError(f"{source}: methods.{name} is missing; restore the file, or start the run anew in another "
                            "directory")
-        for field in _missing_leaves(stored, configs.to_json(methods.default_config(name, run.family))):
+        default = methods.default_config(name, run.family)
+        for field in _missing_leaves(stored, configs.to_json(default)):
             filled.append(f"methods.{name}.{field}")
             if field in UNRESUMABLE_BEFORE:
                 unresumable.append(f"it was made before methods.{name}.{field} existed: {UNRESUMABLE_BEFORE[field]}")
         method_configs[name] = build(f"methods.{name}",
-                                     lambda: methods.resolve_config(name, run.family, stored=stored))
+                                     lambda: methods.resolve_config(name, run.family, stored=stored,
+                                                                    default=default))
 
     classes = {name: methods.config_class(name) for name in run.methods}
     grid = build("grid", lambda: grids.from_json(data.get("grid"), classes))
@@ -276,8 +285,11 @@ def resolve(options: Mapping[str, Any], *, set_specs=(), grid_specs=(),
     checked) last. The device and process counts are JAX's.
     """
     options = dict(options)
-    if options.get("tasks") and options.get("num_tasks") is None:
-        options["num_tasks"] = len(options["tasks"])  # --tasks without --num-tasks: as many as given
+    if options.get("tasks"):
+        family = options.get("family") or (stored.run if stored else RunConfig()).family
+        options["tasks"] = canonical_tasks(family, options["tasks"])
+        if options.get("num_tasks") is None:
+            options["num_tasks"] = len(options["tasks"])  # --tasks without --num-tasks: as many as given
     run = configs.with_shared(stored.run if stored else RunConfig(), options)
     eval_config = configs.with_shared(stored.eval if stored else continual.EvalConfig(), options).resolve(run.family)
     defaults = {name: methods.default_config(name, run.family) for name in run.methods}
@@ -290,7 +302,7 @@ def resolve(options: Mapping[str, Any], *, set_specs=(), grid_specs=(),
                                              {name: overrides[name]} if name in overrides else {})[name]
         else:
             config = methods.resolve_config(name, run.family, shared=options, num_tasks=run.num_tasks,
-                                            overrides=overrides.get(name))
+                                            overrides=overrides.get(name), default=defaults[name])
         method_configs[name] = config
     classes = {name: methods.config_class(name) for name in run.methods}
     if grid_specs:

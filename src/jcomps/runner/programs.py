@@ -86,7 +86,7 @@ class MethodProgram:
     ``make(hparams, progress_fn)`` makes the method from one member's dict of traced hyperparameters (empty
     without traced grid axes) and progress hook; it runs inside each traced function, so every member learns, is
     initialised and is evaluated with its own values. Every program takes ``hparams``, a dict of f32[members]
-    arrays (default: none). ``traces`` counts how often each program was traced (once each, however many tasks
+    arrays (default: none). ``traces`` says how often each program was traced (once each, however many tasks
     run). While a program runs, every member's progress metrics (``jcomps.progress``) reach ``receiver`` (a host
     function of one dict, set by whoever runs the program; None: dropped) with the member's index as ``member``.
     """
@@ -95,14 +95,12 @@ class MethodProgram:
                  devices: int):
         self.make, self.chunk, self.eval_config = make, chunk, eval_config
         self.receiver: Optional[Callable[[dict], None]] = None
-        self.traces: dict = dict.fromkeys(PARTS, 0)
         self.compiled: dict = {}
         """Part -> its ``jax.stages.Compiled``, once ``compile`` made it."""
         mesh = jax.make_mesh((devices,), ("seed",), devices=jax.devices()[:devices])
         seed = P("seed")
 
         def learn(states, sequences, i, seed_index, hparams):
-            self.traces["learn"] += 1
 
             def fn(s, q, m, h):
                 # The hook closes over the member's (traced) index: the method reports its task, we add who it is.
@@ -112,12 +110,10 @@ class MethodProgram:
             return jax.vmap(fn)(states, sequences, seed_index, hparams)
 
         def evaluate_task(states, sequences, i, eval_keys, hparams):
-            self.traces["evaluate_task"] += 1
             return jax.vmap(lambda s, q, k, h: continual.evaluate_task(make(h, None), eval_config, s, q, i, k))(
                 states, sequences, eval_keys, hparams)
 
         def measure(states, tasks, keys, sequences, learnt, eval_keys, seed_index, hparams):
-            self.traces["measure"] += 1
 
             def fn(s, k, q, e, m, h):
                 method = make(h, None)
@@ -128,7 +124,6 @@ class MethodProgram:
             return jax.vmap(fn)(states, keys, sequences, eval_keys, seed_index, hparams)
 
         def init(rngs, hparams):
-            self.traces["init"] += 1
             if not hparams:
                 return continual.init_seeds(make({}, None), rngs)
             return continual.init_seeds(lambda h: make(h, None), rngs, hparams)
@@ -145,6 +140,13 @@ class MethodProgram:
         self._evaluate_task = shard(evaluate_task, shared=frozenset({"i"}))
         self._measure = shard(measure, shared=frozenset({"tasks", "learnt"}))
         self.sharding = jax.sharding.NamedSharding(mesh, seed)
+
+    @property
+    def traces(self) -> dict:
+        """Part -> how often it was traced and compiled: ahead of time by ``compile`` (once at most) and by
+        ``jax.jit`` when a part is called without it (one entry of the jitted function's cache per signature it
+        met). Read from the host, nothing counted inside the traced functions."""
+        return {part: int(part in self.compiled) + getattr(self, "_" + part)._cache_size() for part in PARTS}
 
     def _receive(self, metrics: dict):
         if self.receiver is not None:
