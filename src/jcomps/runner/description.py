@@ -285,12 +285,12 @@ def resolve(options: Mapping[str, Any], *, set_specs=(), grid_specs=(),
     checked) last. The device and process counts are JAX's.
     """
     options = dict(options)
+    base = stored.run if stored else RunConfig()
     if options.get("tasks"):
-        family = options.get("family") or (stored.run if stored else RunConfig()).family
-        options["tasks"] = canonical_tasks(family, options["tasks"])
+        options["tasks"] = canonical_tasks(options.get("family") or base.family, options["tasks"])
         if options.get("num_tasks") is None:
             options["num_tasks"] = len(options["tasks"])  # --tasks without --num-tasks: as many as given
-    run = configs.with_shared(stored.run if stored else RunConfig(), options)
+    run = configs.with_shared(base, options)
     eval_config = configs.with_shared(stored.eval if stored else continual.EvalConfig(), options).resolve(run.family)
     defaults = {name: methods.default_config(name, run.family) for name in run.methods}
     overrides = (configs.parse_overrides(set_specs, defaults) if set_specs or not stored

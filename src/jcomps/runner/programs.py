@@ -101,7 +101,6 @@ class MethodProgram:
         seed = P("seed")
 
         def learn(states, sequences, i, seed_index, hparams):
-
             def fn(s, q, m, h):
                 # The hook closes over the member's (traced) index: the method reports its task, we add who it is.
                 report = progress.host(self._receive)
@@ -114,7 +113,6 @@ class MethodProgram:
                 states, sequences, eval_keys, hparams)
 
         def measure(states, tasks, keys, sequences, learnt, eval_keys, seed_index, hparams):
-
             def fn(s, k, q, e, m, h):
                 method = make(h, None)
                 report = progress.with_fields(progress.host(self._receive), member=m)
