@@ -280,8 +280,8 @@ def markdown(family: str, proto: Protocol, results_by_sequence: dict, partial: O
               "paper's Figure 3), `figures/lifelong_return.png` (the return of every iteration over the sequence, "
               "averaged over 5 iterations and over seeds, the paper's Figure 4, left)."]
     for sequence, results in results_by_sequence.items():
-        lines += ["", f"## {sequence}", "", f"p-values of CoMPS against each method: {paper.TEST}. The paper "
-                  f"tests "
+        lines += ["", f"## {sequence}", "", f"p-values of CoMPS against each method, the paper's test ({paper.TEST}) "
+                  f"over this study's {proto.seeds} seeds. The paper tests "
                   f"{'iterations to success' if paper.QUANTITY[sequence] == 'iterations' else 'the average return'}"
                   f" on this sequence; so does the column *ours*. Means are per-seed means over the sequence.", "",
                   "| CoMPS vs | iterations (CoMPS, other) | p, t-test / bootstrap | average return (CoMPS, other) "
