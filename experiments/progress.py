@@ -297,8 +297,23 @@ def _report_chunk(log, name, metrics, start, stop, num_tasks):
     for t in range(stop - start):
         log(f"[{name}] task {start + t + 1}/{num_tasks} iterations-to-success per seed: {its[:, t].tolist()} "
             f"(mean {its[:, t].mean():.1f}){critic_text(fit, t)}")
+        health = metrics.task.policy_health
+        if health is not None:
+            log(f"[{name}] task {start + t + 1}/{num_tasks} policy: {policy_health_text(health, t)}")
         if meta is not None:
             log(f"[{name}] task {start + t + 1}/{num_tasks} meta phase: {meta_health_text(meta, t, start + t)}")
+
+
+def policy_health_text(health, t: int) -> str:
+    """The policy that task position ``t`` of ``health`` (``jcomps.training.plasticity.PolicyHealth`` with leading
+    [seeds, tasks]) started from and ended with, means over seeds: its exploration std, entropy and the fraction of
+    saturated units per hidden layer."""
+    at = lambda x: np.asarray(x)[:, t]  # noqa: E731
+    layers = lambda x: "/".join(f"{v:.2f}" for v in at(x).mean(axis=0))  # noqa: E731
+    return (f"std {at(health.std_start).mean():.3g} -> {at(health.std_end).mean():.3g} (per seed at the start "
+            f"{', '.join(f'{v:.3g}' for v in at(health.std_start))}), entropy {at(health.entropy_start).mean():.3g} -> "
+            f"{at(health.entropy_end).mean():.3g}, saturated units per layer {layers(health.saturated_start)} -> "
+            f"{layers(health.saturated_end)}")
 
 
 def critic_text(fit, t: int) -> str:
@@ -358,14 +373,21 @@ def _check_finite(log, name, seeds, nonfinite, start):
 
 def chunk_scalars(per_task, start: int, stop: int, learnt=None) -> list[tuple[str, float, str, int]]:
     """The scalars of tasks ``start`` … ``stop`` − 1 that TensorBoard and W&B get: (tag, value, axis, step), the
-    axis ``task`` (iterations-to-success, the learnt tasks' metrics after the chunk) or ``iteration/seed<s>`` (the
+    axis ``task`` (iterations-to-success, the policy's std, entropy and saturation at the task's start and end, the
+    learnt tasks' metrics after the chunk) or ``iteration/seed<s>`` (the
     seed's iterations over the whole sequence: lifelong return and success, the critic's explained variance and
     value loss where the iteration updated)."""
     task = per_task.task
     its = np.asarray(task.iterations)
     out = []
+    health = task.policy_health
     for t in range(start, stop):
         out.append(("iterations_to_success/mean", float(its[:, t].mean()), "task", t + 1))
+        if health is not None:  # the policy each task started from and ended with, means over seeds
+            for key in ("std_start", "std_end", "entropy_start", "entropy_end"):
+                out.append((f"policy/{key}", float(np.mean(np.asarray(getattr(health, key))[:, t])), "task", t + 1))
+            for layer, value in enumerate(np.asarray(health.saturated_end)[:, t].mean(axis=0)):
+                out.append((f"policy/saturated_end/layer{layer + 1}", float(value), "task", t + 1))
         for s in range(its.shape[0]):
             out.append((f"iterations_to_success/seed{s}", float(its[s, t]), "task", t + 1))
         for s in range(its.shape[0]):

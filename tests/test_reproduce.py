@@ -83,20 +83,78 @@ def _verdicts(r, family="ant_goal", sequence="non-stationary"):
 
 def test_the_claims_hold_level_or_reverse_with_the_figures():
     backward = np.full(FAST.shape, 0.8)
-    holds = _verdicts(_results({"comps": FAST, "ppo_tl": SLOW, "gmps_ppo": SLOW},
-                               {"comps": -FAST, "ppo_tl": -SLOW, "gmps_ppo": -SLOW}, backward))
-    assert holds == {"fastest": "holds", "faster_with_tasks": "holds", "ahead_of_gmps_ppo": "holds",
-                     "highest_return": "holds", "backward_transfer": "holds"}
-    reversed_ = _verdicts(_results({"comps": SLOW, "ppo_tl": FAST, "gmps_ppo": FAST},
-                                   {"comps": -SLOW, "ppo_tl": -FAST, "gmps_ppo": -FAST}, backward - 1.0))
-    assert reversed_ == {"fastest": "reversed", "faster_with_tasks": "reversed", "ahead_of_gmps_ppo": "reversed",
-                         "highest_return": "reversed", "backward_transfer": "reversed"}
-    level = _verdicts(_results({"comps": FAST, "gmps_ppo": SAME}, {"comps": -FAST, "gmps_ppo": -SAME}))
+    ahead = _results({"comps": FAST, "ppo_tl": SLOW, "gmps_ppo": SLOW},
+                     {"comps": -FAST, "ppo_tl": -SLOW, "gmps_ppo": -SLOW}, backward)
+    every = {"fastest", "faster_with_tasks", "ahead_of_gmps_ppo", "highest_return", "backward_transfer"}
+    assert _verdicts(ahead, sequence="stationary") == dict.fromkeys(every, "holds")
+    # "the fastest" is said of the stationary sequences only (L562-563; L790: "most tasks").
+    assert _verdicts(ahead) == {**dict.fromkeys(every, "holds"), "fastest": "not claimed"}
+    behind = _results({"comps": SLOW, "ppo_tl": FAST, "gmps_ppo": FAST},
+                      {"comps": -SLOW, "ppo_tl": -FAST, "gmps_ppo": -FAST}, backward - 1.0)
+    assert _verdicts(behind, sequence="stationary") == dict.fromkeys(every, "reversed")
+    level = _verdicts(_results({"comps": FAST, "gmps_ppo": SAME}, {"comps": -FAST, "gmps_ppo": -SAME}),
+                      sequence="stationary")
     assert level["fastest"] == "level" and level["ahead_of_gmps_ppo"] == "level"
     assert level["backward_transfer"] == "n/a"  # not measured
-    # Stationary: no return claim; MetaWorld: no backward-transfer claim.
-    assert "highest_return" not in _verdicts(_results({"comps": FAST}, {"comps": -FAST}), sequence="stationary")
-    assert "backward_transfer" not in _verdicts(_results({"comps": FAST}, {"comps": -FAST}), "metaworld")
+    # MetaWorld: backward transfer not claimed (L849); Point Goal, not in the paper: no row for a claim the paper
+    # makes of named families only.
+    assert _verdicts(ahead, "metaworld")["backward_transfer"] == "not claimed"
+    assert "backward_transfer" not in _verdicts(ahead, "point_goal")
+
+
+def test_a_clean_separation_is_significant_not_level():
+    """Every seed the same: two constant groups apart, the t-test's p is exactly 0, which is significant (a p of 0
+    is not a missing one)."""
+    fast, slow = np.array([[30, 20, 10, 5]] * 4), np.array([[60, 70, 80, 90]] * 4)
+    assert statistics.significance(fast.mean(1), slow.mean(1))["p_ttest"] == 0.0
+    every = {"fastest", "faster_with_tasks", "ahead_of_gmps_ppo", "highest_return"}
+    ahead = _results({"comps": fast, "ppo_tl": slow, "gmps_ppo": slow},
+                     {"comps": -fast, "ppo_tl": -slow, "gmps_ppo": -slow})
+    assert {k: v for k, v in _verdicts(ahead, sequence="stationary").items() if k in every} == dict.fromkeys(
+        every, "holds")
+    behind = _results({"comps": slow, "ppo_tl": fast, "gmps_ppo": fast},
+                      {"comps": -slow, "ppo_tl": -fast, "gmps_ppo": -fast})
+    assert {k: v for k, v in _verdicts(behind, sequence="stationary").items() if k in every} == dict.fromkeys(
+        every, "reversed")
+    rows = {row["claim"]: row for row in reproduction.claims_table({"stationary": ahead}, "ant_goal")}
+    assert "(p 0)" in rows["fastest"]["shows"]
+    assert "paired t-test over seeds, p 0)" in rows["faster_with_tasks"]["shows"]
+
+
+def test_each_claim_only_where_the_paper_makes_it():
+    said = paper.claim
+    assert said("fastest", "stationary", "metaworld").made and said("fastest", "stationary", "ant_dir").where == \
+        "L562-563"
+    not_fastest = said("fastest", "non-stationary", "ant_goal")
+    assert not not_fastest.made and "L790" in not_fastest.where and "most tasks" in not_fastest.text
+    # "attains higher rewards" on Half-Cheetah (L584); PPO+TL level on MetaWorld and Ant Direction (L812).
+    assert said("highest_return", "non-stationary", "cheetah_vel").where == "L584, L812"
+    assert said("highest_return", "non-stationary", "ant_goal").made
+    for family in ("ant_dir", "metaworld"):
+        assert not said("highest_return", "non-stationary", family).made
+        assert said("highest_return", "non-stationary", family).where == "L812"
+    # GMPS+PPO: L591 is the stationary figure's iterations; the non-stationary rows rest on L782 (returns) and, on
+    # MetaWorld, L587 (iterations).
+    assert said("ahead_of_gmps_ppo", "stationary", "ant_goal")[2:] == (
+        "L591", ("stationary",), (), True, "iterations")
+    assert (said("ahead_of_gmps_ppo", "non-stationary", "ant_goal").where,
+            said("ahead_of_gmps_ppo", "non-stationary", "ant_goal").quantity) == ("L782", "mean_return")
+    assert (said("ahead_of_gmps_ppo", "non-stationary", "metaworld").where,
+            said("ahead_of_gmps_ppo", "non-stationary", "metaworld").quantity) == ("L587", "iterations")
+    assert said("backward_transfer", "stationary", "point_goal") is None
+    assert all(c.quantity in (None, "iterations", "mean_return") for c in paper.CLAIMS)
+
+    # GMPS+PPO solves faster but earns less: behind it on the stationary claim (iterations), ahead on the
+    # non-stationary one (returns); the row cites the line it checks.
+    r = _results({"comps": SLOW, "gmps_ppo": FAST}, {"comps": -FAST, "gmps_ppo": -SLOW})
+    for sequence, where, verdict in (("stationary", "L591", "reversed"), ("non-stationary", "L782", "holds")):
+        row = next(row for row in reproduction.claims_table({sequence: r}, "ant_goal")
+                   if row["claim"] == "ahead_of_gmps_ppo")
+        assert (row["where"], row["verdict"]) == (where, verdict)
+    # Where the paper does not make a claim the row says so, and still shows what this study measured.
+    row = next(row for row in reproduction.claims_table({"non-stationary": r}, "ant_dir")
+               if row["claim"] == "highest_return")
+    assert row["verdict"] == "not claimed" and "somewhat similar" in row["text"] and "gmps_ppo" in row["shows"]
 
 
 def test_the_report_and_its_figures(tmp_path):
@@ -105,7 +163,13 @@ def test_the_report_and_its_figures(tmp_path):
     text = reproduction.markdown("ant_goal", proto, {"non-stationary": r})
     assert "# Reproducing the paper on ant_goal (the paper's Ant Goal)" in text
     assert "| ppo_tl |" in text and "| 3.1e-04 |" in text  # the paper's p-value beside ours
-    assert "| CoMPS \"solves all of the tasks the fastest\" | L562 | non-stationary | **holds** |" in text
+    assert "| CoMPS \"solves all of the tasks the fastest\" is said of the stationary sequences" in text
+    assert "| L562-563, L790 | non-stationary | **not claimed** |" in text
+    # The column "ours" and the verdicts are the t-test's, the bootstrap's floor being above most of the paper's p.
+    assert "17 of the paper's 32 p-values are below it" in text and "1/30,001 ≈ 3.3e-05" in text
+    assert "Ours, not the paper's: the paired t-test" in text and "the threshold 0.5" in text
+    stationary = reproduction.markdown("ant_goal", proto, {"stationary": r})
+    assert "| CoMPS \"solves all of the tasks the fastest\" | L562-563 | stationary | **holds** |" in stationary
     paths = reproduction.figures({"non-stationary": r, "stationary": r}, str(tmp_path), "point_goal")
     assert [os.path.basename(p) for p in paths] == ["figure3.png", "lifelong_return.png"]
     assert all(os.path.getsize(p) > 0 for p in paths)

@@ -357,7 +357,7 @@ def heldout_adaptation(method: Method, eval_config: EvalConfig, state, heldout_t
         return jax.vmap(own)(heldout_tasks, jax.random.split(rng, n))
     config = method.config.ppo
     optimizer = ppo.make_optimizer(config)
-    params = state.params
+    params = state.params._replace(policy=config.task_start(state.params.policy))  # a held-out task is a new task
 
     def one(task, key, j):
         report = None

@@ -143,6 +143,29 @@ def _meta_health(save: Callable, with_meta: dict, tasks) -> None:
     save(fig, "meta_health.png")
 
 
+def _policy_health(save: Callable, with_policy: dict, tasks) -> None:
+    """The policy each task starts from and ends with ({name: its ``policy`` summary}): its exploration std (log
+    scale: a collapse shows), and the fraction of saturated hidden units per layer."""
+    fig, (ax_std, ax_sat) = _figure((11, 4), 2)
+    for k_, (name, p) in enumerate(with_policy.items()):
+        ax_std.plot(tasks, np.mean(_floats(p["std_start"]), axis=0), marker="o", ms=3, color=f"C{k_}",
+                    label=f"{name}, task start")
+        ax_std.plot(tasks, np.mean(_floats(p["std_end"]), axis=0), ls=":", marker="x", ms=3, color=f"C{k_}",
+                    label=f"{name}, task end")
+        saturated = _floats(p["saturated_end"])  # [seeds, tasks, layers]
+        for layer in range(saturated.shape[-1]):
+            ax_sat.plot(tasks, np.mean(saturated[..., layer], axis=0), ls=("-", "--", ":", "-.")[layer % 4],
+                        marker="o", ms=3, color=f"C{k_}", label=f"{name}, layer {layer + 1}")
+    ax_std.set(xlabel="task", ylabel="exploration std (mean over action dimensions)", yscale="log",
+               title="Policy: exploration std at each task's start and end")
+    ax_sat.set(xlabel="task", ylabel="fraction of saturated tanh units", ylim=(-0.02, 1.02),
+               title="Policy: saturated hidden units at each task's end")
+    for a in (ax_std, ax_sat):
+        _integer_ticks(a)
+        _legend_or(a, fontsize=7)
+    save(fig, "policy_health.png")
+
+
 def _critic(save: Callable, methods_: dict, tasks) -> None:
     """The RL step's critic per task ({name: its ``critic`` summary}): its explained variance of the value targets
     (mean over the task's updating iterations, and at the last of them) and its value loss."""
@@ -246,6 +269,9 @@ def write(results: dict, raws: dict, directory: str, description) -> list[str]:
                    if np.isfinite(_floats(m.get("critic", {}).get("value_ev_mean", [[np.nan]]))).any()}
     if with_critic:  # not in older runs, nor for PEARL
         _critic(save, with_critic, tasks)
+    with_policy = {name: m["policy"] for name, m in methods_.items() if "policy" in m}
+    if with_policy:  # not in older runs, nor for PEARL
+        _policy_health(save, with_policy, tasks)
     with_meta = {name: m["meta"] for name, m in methods_.items() if "meta" in m}
     if with_meta:
         _meta_health(save, with_meta, tasks)

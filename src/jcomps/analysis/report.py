@@ -52,6 +52,7 @@ from jcomps.runner import results as results_
 from jcomps.runner import rundir
 from jcomps.runner.description import RunDescription
 from jcomps.runner.files import RunError, write_json
+from jcomps.training import plasticity
 
 
 def _curves(values: np.ndarray, valid: np.ndarray) -> list:
@@ -149,6 +150,8 @@ def summarize(description: RunDescription, raws: dict, baseline: Optional[str] =
         entry["critic"] = critic_summary(raw.task.per_iteration)
         if raw.task.meta is not None:
             entry["meta"] = meta_summary(raw.task.meta)
+        if raw.task.policy_health is not None:
+            entry["policy"] = policy_summary(raw.task.policy_health)
         entry.update(learnt_summary(raw))
         entry["performance_profile"] = {"statistic": "fraction of runs (seeds × tasks) that reached the threshold "
                                                      "within tau iterations; 95% stratified-bootstrap band",
@@ -299,6 +302,23 @@ def critic_summary(per_iteration) -> dict:
                          "the update, and the value loss",
             "value_ev_mean": rows(fit.ev_mean), "value_ev_first": rows(fit.ev_first),
             "value_ev_last": rows(fit.ev_last), "value_loss_mean": rows(fit.value_loss)}
+
+
+def policy_summary(health) -> dict:
+    """The exploration and plasticity of the policy each task's RL step started from and ended with
+    (``jcomps.training.plasticity.PolicyHealth`` with leading [seeds, tasks]) for ``results.json``: per seed and task,
+    its std (mean over action dimensions), its entropy, and per hidden layer the fraction of saturated tanh units;
+    the means over seeds per task beside them."""
+    rows = lambda x: np.round(np.asarray(x, np.float64), 6).tolist()  # noqa: E731
+    out = {"statistic": "per seed and task: the policy the task's RL step started from (start) and ended with (end): "
+                        "exploration std (mean over action dimensions), Gaussian entropy (nats), and per hidden "
+                        f"layer the fraction of tanh units with |h| >= {plasticity.SATURATION} on at least "
+                        f"{plasticity.SATURATED_SHARE:.0%} of the states of the task's first (start) or last (end) "
+                        "iteration"}
+    for key, value in health._asdict().items():
+        out[key] = rows(value)
+        out[key + "_mean"] = rows(np.mean(np.asarray(value, np.float64), axis=0))
+    return out
 
 
 def meta_summary(meta) -> dict:

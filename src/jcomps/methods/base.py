@@ -21,6 +21,7 @@ import jax
 
 from jcomps.training import acting
 from jcomps.training.meta import MetaMetrics
+from jcomps.training.plasticity import PolicyHealth
 from jcomps.training.rl_loop import IterationMetrics
 
 
@@ -33,12 +34,16 @@ class TaskMetrics(NamedTuple):
       per_iteration: IterationMetrics with fields of length ``budget``, masked by ``per_iteration.valid``.
       meta: the health of the meta phase that followed the task (``jcomps.training.meta.MetaMetrics``) for the methods
         with CoMPS's meta step; None for the others.
+      policy_health: the exploration std, entropy and hidden-unit saturation of the policy the task's RL step
+        started from and ended with (``jcomps.training.plasticity.PolicyHealth``) for the methods whose policy is a
+        Gaussian with a state-independent std; None for the others (PEARL) and in runs made before it was measured.
     """
 
     iterations: jax.Array
     solved: jax.Array
     per_iteration: IterationMetrics
     meta: Optional[MetaMetrics] = None
+    policy_health: Optional[PolicyHealth] = None
 
 
 class Method(NamedTuple):

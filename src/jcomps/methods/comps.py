@@ -97,8 +97,10 @@ class CoMPSState(NamedTuple):
 
 def meta_config(config: CoMPSConfig) -> meta.MetaConfig:
     """The meta step's config with the fields that follow the RL step resolved: ``reward_scale`` None takes the RL
-    step's reward scale, ``value_learning_rate`` None its learning rate (either may be a traced grid value)."""
-    follow = {"reward_scale": config.ppo.reward_scale, "value_learning_rate": config.ppo.learning_rate}
+    step's reward scale, ``value_learning_rate`` None its learning rate (either may be a traced grid value),
+    ``hold_std`` None holds the std where the RL step's is fixed (``ppo.std_mode``)."""
+    follow = {"reward_scale": config.ppo.reward_scale, "value_learning_rate": config.ppo.learning_rate,
+              "hold_std": config.ppo.std_mode == "fixed"}
     return dataclasses.replace(config.meta, **{name: value for name, value in follow.items()
                                                if getattr(config.meta, name) is None})
 
@@ -161,7 +163,8 @@ def make(family: Family, config: CoMPSConfig = CoMPSConfig(), progress_fn: Optio
         example = buffers.rollout_example(family, B)  # one iteration's batch, shapes only
         aux0 = (buffers.skilled_init_like(example, config.num_skilled), buffers.recent_init_like(example, capacity))
         report = with_fields(progress_fn, task=state.task_index)
-        out = ppo.rl_step(config.ppo, family, state.params, opt_state, task, k_rl, observe=observe, aux=aux0,
+        params = state.params._replace(policy=config.ppo.task_start(state.params.policy))
+        out = ppo.rl_step(config.ppo, family, params, opt_state, task, k_rl, observe=observe, aux=aux0,
                           progress_fn=report)
         skilled, recent = out.aux
         offpolicy = buffers.sample_offpolicy(recent, config.num_offpolicy, k_off)
@@ -178,7 +181,8 @@ def make(family: Family, config: CoMPSConfig = CoMPSConfig(), progress_fn: Optio
         after = meta.slot_diagnostics(mconfig, meta_state.policy, meta_state.value, stores)
         params = out.params._replace(policy=meta_state.policy)
         new = CoMPSState(params, out.opt_state, meta_state, stores, rng, state.task_index + 1, state.fresh)
-        return new, TaskMetrics(out.iterations, out.solved, out.metrics, meta.MetaMetrics(steps, before, after))
+        return new, TaskMetrics(out.iterations, out.solved, out.metrics, meta.MetaMetrics(steps, before, after),
+                                out.health)
 
     return Method(name, config, family, init, learn_task)
 

@@ -39,7 +39,7 @@ from jcomps.numerics import (
     all_finite, check_field, check_finite_fields, holds_tracers, keep_if_finite, masked_mean, masked_standardize,
 )
 from jcomps.progress import ProgressFn, with_fields
-from jcomps.training import acting, networks, ppo, rl_loop
+from jcomps.training import acting, networks, plasticity, ppo, rl_loop
 from jcomps.training.rl_loop import UpdateTerms
 
 
@@ -96,7 +96,7 @@ def inner_step(config: MAMLTLConfig, policy: dict, pre: dict) -> dict:
     if config.ppo.normalize_advantages:
         adv = masked_standardize(adv, mask)
     adv = jax.lax.stop_gradient(adv)
-    log_prob = lambda p: networks.GAUSSIAN.log_prob(p, pre["obs"], pre["action"])  # noqa: E731
+    log_prob = lambda p: networks.GAUSSIAN.log_prob(config.ppo.trained(p), pre["obs"], pre["action"])  # noqa: E731
     if config.inner_objective == "lvc":
         behaviour = jax.lax.stop_gradient(pre["log_prob"])
         objective = lambda p: masked_mean(jnp.exp(log_prob(p) - behaviour) * adv, mask)  # noqa: E731
@@ -168,13 +168,18 @@ def make(family: Family, config: MAMLTLConfig = MAMLTLConfig(), progress_fn: Opt
             return learner, aux, rl_loop.collected(family, (pre, pre_traj, post_traj), post_traj, pre_traj)
 
         rng, k_task = jax.random.split(state.rng)
-        opt_state = optimizer.init(state.params) if config.reset_optimizer else state.opt_state
-        out = rl_loop.iterate(collect, update, (state.params, opt_state), k_task, threshold=family.success_threshold,
-                              budget=budget, collect_keys=2,
-                              progress_fn=with_fields(progress_fn, task=state.task_index))
+        start = state.params._replace(policy=pcfg.task_start(state.params.policy))
+        opt_state = optimizer.init(start) if config.reset_optimizer else state.opt_state
+        report = with_fields(progress_fn, task=state.task_index)
+        out = rl_loop.iterate(collect, update, (start, opt_state), k_task, threshold=family.success_threshold,
+                              budget=budget, collect_keys=2, progress_fn=report,
+                              states=plasticity.empty_states(family, B))
         params, opt_state = out.state
+        health = plasticity.policy_health(networks.GAUSSIAN, start.policy, params.policy, out.first_states,
+                                          out.last_states)
         return MAMLTLState(params, opt_state, rng, state.task_index + 1), TaskMetrics(out.iterations, out.solved,
-                                                                                      out.metrics)
+                                                                                      out.metrics,
+                                                                                      policy_health=health)
 
     def policy_for(state: MAMLTLState, slot, task, rng):  # φ: one inner step from θ on fresh data of ``task``
         return adapt_on(config, family, state.params, state.params.policy, task, rng)[0]

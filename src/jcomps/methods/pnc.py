@@ -125,9 +125,10 @@ def kb_features(kb: dict, obs: jax.Array) -> list[jax.Array]:
     return feats
 
 
-def column_mean(policy: dict, obs: jax.Array) -> jax.Array:
-    """Action mean f32[..., A] of an active column: ``policy['mean']`` layers, with adaptor i adding
-    ``α_i ⊙ U_i tanh(V_i h^KB_{i−1} + c_i)`` to layer i's pre-activation (i >= 2; the last layer is linear).
+def column_layers(policy: dict, obs: jax.Array) -> tuple[list[jax.Array], jax.Array]:
+    """The hidden activations [f32[..., width] per hidden layer] and the action mean f32[..., A] of an active column
+    at raw ``obs``: ``policy['mean']`` layers, with adaptor i adding ``α_i ⊙ U_i tanh(V_i h^KB_{i−1} + c_i)`` to layer
+    i's pre-activation (i >= 2; the last layer is linear).
 
     ``policy['kb']`` (the frozen knowledge base, a plain policy) gets no gradient: the lateral connections carry
     gradient into the active column and its adaptors only.
@@ -136,14 +137,26 @@ def column_mean(policy: dict, obs: jax.Array) -> jax.Array:
     obs = obs.reshape((-1, obs.shape[-1]))
     feats = kb_features(policy["kb"], obs)
     h = networks.normalize_obs(policy, obs)
-    layers = policy["mean"]
+    layers, hidden = policy["mean"], []
     for i, layer in enumerate(layers):
         pre = h @ layer["w"] + layer["b"]
         if i >= 1:
             a = policy["adaptors"][i - 1]
             pre = pre + a["alpha"] * (jnp.tanh(feats[i - 1] @ a["v"] + a["c"]) @ a["u"])
         h = pre if i == len(layers) - 1 else jnp.tanh(pre)
-    return h.reshape(lead + h.shape[-1:])
+        if i < len(layers) - 1:
+            hidden.append(h.reshape(lead + h.shape[-1:]))
+    return hidden, h.reshape(lead + h.shape[-1:])
+
+
+def column_mean(policy: dict, obs: jax.Array) -> jax.Array:
+    """Action mean f32[..., A] of an active column (``column_layers``)."""
+    return column_layers(policy, obs)[1]
+
+
+def column_hidden(policy: dict, obs: jax.Array) -> list[jax.Array]:
+    """The hidden activations of an active column (``column_layers``)."""
+    return column_layers(policy, obs)[0]
 
 
 def column_dist(policy: dict, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -151,7 +164,7 @@ def column_dist(policy: dict, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
     return column_mean(policy, obs), policy["log_std"]
 
 
-COLUMN = networks.PolicyFns(column_dist, host_kind="pnc_column")
+COLUMN = networks.PolicyFns(column_dist, host_kind="pnc_column", hidden=column_hidden)
 """How an active column (``with_kb``) is applied; its NumPy twin is ``jcomps.envs.host_acting.pnc_column``."""
 
 
@@ -211,7 +224,7 @@ def distill_loss(config: PNCConfig, kb_trainable: dict, kb: dict, teacher_mean, 
                  anchor: dict, fisher: dict):
     """Mean KL(π_active ‖ π_KB) over the valid states ``obs`` (the teacher's mean and log-std are constants) plus
     the online-EWC penalty; returns (loss, KL)."""
-    student = {**kb, **kb_trainable}
+    student = config.ppo.trained({**kb, **kb_trainable})
     mean, log_std = networks.policy_dist(student, obs)
     kl = gaussian_kl(jax.lax.stop_gradient(teacher_mean), jax.lax.stop_gradient(teacher_log_std), mean, log_std)
     kl = masked_mean(kl, valid)
@@ -373,6 +386,7 @@ def make(family: Family, config: PNCConfig = PNCConfig(), progress_fn: Optional[
             value = state.fresh.value
         else:
             active, value = state.active, state.params.value
+        active = pcfg.task_start(active)
         params = networks.ActorCriticParams(with_kb(active, kb), value)
         report = with_fields(progress_fn, task=state.task_index)
         out = ppo.rl_step(pcfg, family, params, optimizer.init(params), task, k_rl, progress_fn=report,
@@ -388,7 +402,7 @@ def make(family: Family, config: PNCConfig = PNCConfig(), progress_fn: Optional[
         iterations = jnp.where(out.solved, out.iterations, budget)
         new = PNCState(networks.ActorCriticParams(kb, out.params.value), active, state.fresh, fisher, anchor, rng,
                        state.task_index + 1)
-        return new, TaskMetrics(iterations, out.solved, metrics)
+        return new, TaskMetrics(iterations, out.solved, metrics, policy_health=out.health)
 
     # The compress phase's batches come after the threshold is met: charged to every solved task's samples.
     return Method("pnc", config, family, init, learn_task,

@@ -62,13 +62,14 @@ def make(family: Family, config: PPOTLConfig = PPOTLConfig(), progress_fn: Optio
     def learn_task(state: PPOTLState, task) -> tuple[PPOTLState, TaskMetrics]:
         rng, k = jax.random.split(state.rng)
         params = state.fresh if scratch else state.params
+        params = params._replace(policy=config.ppo.task_start(params.policy))
         opt_state = optimizer.init(params) if config.reset_optimizer or scratch else state.opt_state
         out = ppo.rl_step(config.ppo, family, params, opt_state, task, k,
                           progress_fn=with_fields(progress_fn, task=state.task_index))
         new_state = PPOTLState(out.params, out.opt_state, rng, state.task_index + 1)
         if scratch:
             new_state = ScratchState(*new_state, state.fresh)
-        return new_state, TaskMetrics(out.iterations, out.solved, out.metrics)
+        return new_state, TaskMetrics(out.iterations, out.solved, out.metrics, policy_health=out.health)
 
     return Method("ppo" if scratch else "ppo_tl", config, family, init, learn_task)
 

@@ -84,11 +84,13 @@ def canonical_tasks(family: str, tasks) -> tuple[str, ...]:
         raise ValueError(f"tasks: {err}") from None
 
 
-FORMAT = 2
+FORMAT = 3
 """The format of what a run's checkpoints hold beyond its configs, recorded as ``run.json``'s ``format`` (runs
 made before it was recorded are format 1); a resume refuses an older one (``FORMAT_CHANGES`` says why)."""
 FORMAT_CHANGES = {
     2: "the RL step's per-iteration metrics now hold the critic's explained variance, which its checkpoints lack",
+    3: "the per-task metrics now hold the policy's exploration std, entropy and hidden-unit saturation at each "
+       "task's start and end, which its checkpoints lack",
 }
 
 # Config fields whose addition changed what a method's state holds, so that a run made before them cannot be

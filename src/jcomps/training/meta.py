@@ -99,6 +99,10 @@ class MetaConfig:
     squared error of the policy's mean action (averaged over action dimensions), the std kept out of the meta step
     (its outer gradient is zero, so θ's std stays where the meta phase started), as the authors' code cloned
     (docs/results.md, "The ladder as the paper's authors ran it", has both measured)."""
+    hold_std: Optional[bool] = None
+    """Keep the policy's std out of the meta step: no inner or outer gradient reaches it, so θ's std stays where
+    the meta phase started; None: held where the RL step's std is fixed (its ``std_mode``; CoMPS resolves it), not
+    held where there is no RL step. ``outer_loss="mean_mse"`` holds it either way."""
     outer_update: str = "mean"
     """How θ is updated: ``mean``, one Adam step on the mean over seen tasks per outer step; ``sequential``,
     Algorithm 1 read literally: per meta step, task after task (newest last), ``num_outer_steps`` Adam steps on
@@ -333,12 +337,14 @@ def head_objective(config: MetaConfig, policy, head, batch: TaskBatch):
     """``slot_objective`` with the slot's value head ``head`` (its MLP layers) given directly: its gradient in
     ``head`` is that head's slice of the stacked heads' gradient."""
     off = batch.off
-    if config.outer_loss == "mean_mse":  # the std is kept out of the meta step: no outer gradient reaches it
-        policy = {**policy, "log_std": jax.lax.stop_gradient(policy["log_std"])}
+    # With the std kept out of the meta step, neither the outer gradient nor the inner step reaches it.
+    hold = networks.held_std if config.outer_loss == "mean_mse" or config.hold_std else (lambda p: p)
+    policy = hold(policy)
     # The value heads see observations normalised like the policy's (statistics are constants).
     values = networks.value_apply(head, networks.normalize_obs(policy, off.traj.obs))
     bootstrap = networks.value_apply(head, networks.normalize_obs(policy, off.traj.last_obs))
-    log_prob, log_prob_vjp = jax.vjp(lambda p: networks.GAUSSIAN.log_prob(p, off.traj.obs, off.traj.action), policy)
+    log_prob, log_prob_vjp = jax.vjp(lambda p: networks.GAUSSIAN.log_prob(hold(p), off.traj.obs, off.traj.action),
+                                     policy)
     advantages, targets, weights = _vtrace_terms(config, log_prob, values, bootstrap, off)
     adapted = adapt(config, policy, off, advantages, log_prob_vjp)
     bc = outer_loss(config, adapted, batch.skilled_obs, batch.skilled_action, batch.skilled_valid)

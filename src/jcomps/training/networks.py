@@ -128,6 +128,32 @@ def policy_dist(policy: dict, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
     return mlp_apply(policy["mean"], normalize_obs(policy, obs)), policy["log_std"]
 
 
+def policy_hidden(policy: dict, obs: jax.Array) -> list[jax.Array]:
+    """The tanh hidden activations f32[..., width] of the Gaussian MLP policy's mean network at (raw) ``obs``, one
+    array per hidden layer (what the plasticity measures read, ``jcomps.training.plasticity``)."""
+    h, out = normalize_obs(policy, obs), []
+    for layer in policy["mean"][:-1]:
+        h = mlp_features([layer], h)
+        out.append(h)
+    return out
+
+
+STD_MODES = ("learnt", "fixed", "reset")
+"""How a policy's state-independent exploration std is treated (``jcomps.training.ppo.PPOConfig.std_mode``)."""
+
+
+def held_std(policy: dict) -> dict:
+    """``policy`` with its log-std a constant of any gradient taken through the result: no update (an optimiser's, an
+    inner step's, a distillation's) can move it, and Adam, whose moments then stay zero, leaves it bit for bit."""
+    return {**policy, "log_std": jax.lax.stop_gradient(policy["log_std"])}
+
+
+def with_std(policy: dict, std) -> dict:
+    """``policy`` with its std set to ``std`` (a scalar, may be traced) in every action dimension."""
+    log_std = jnp.log(jnp.asarray(std, jnp.float32))
+    return {**policy, "log_std": jnp.full(policy["log_std"].shape, log_std, dtype=jnp.float32)}
+
+
 def gaussian_log_prob(mean: jax.Array, log_std: jax.Array, action: jax.Array) -> jax.Array:
     """log N(action; mean, exp(log_std)²), summed over the last (action) axis."""
     z = (action - mean) * jnp.exp(-log_std)
@@ -147,10 +173,13 @@ class PolicyFns(NamedTuple):
       dist: ``(policy, obs f32[..., obs_size]) -> (mean f32[..., A], log_std f32[A])`` at raw observations.
       host_kind: the name of ``act``'s NumPy twin (``jcomps.envs.host_acting.TWINS``), with which a family simulated on
         the host runs whole rollouts there; None: no twin (such a family is stepped through its ``step``).
+      hidden: ``(policy, obs f32[..., obs_size]) -> [f32[..., width] per hidden layer]``, the mean network's tanh
+        activations (the plasticity measures' input); None: not measured.
     """
 
     dist: Callable[[Any, jax.Array], tuple[jax.Array, jax.Array]]
     host_kind: Optional[str] = None
+    hidden: Optional[Callable[[Any, jax.Array], list]] = None
 
     def log_prob(self, policy, obs: jax.Array, action: jax.Array) -> jax.Array:
         """log π(action | obs) f32[...] for ``obs`` f32[..., obs_size] and ``action`` f32[..., A]."""
@@ -170,7 +199,7 @@ class PolicyFns(NamedTuple):
         return action, log_prob
 
 
-GAUSSIAN = PolicyFns(policy_dist, host_kind="gaussian")
+GAUSSIAN = PolicyFns(policy_dist, host_kind="gaussian", hidden=policy_hidden)
 """The Gaussian MLP policy of ``init_actor_critic`` (``policy_dist``); its twin is
 ``jcomps.envs.host_acting.gaussian``."""
 

@@ -27,7 +27,7 @@ from jcomps.numerics import (
     masked_standardize,
 )
 from jcomps.progress import ProgressFn
-from jcomps.training import acting, networks, rl_loop
+from jcomps.training import acting, networks, plasticity, rl_loop
 from jcomps.training.rl_loop import IterationMetrics, UpdateTerms
 
 
@@ -45,7 +45,14 @@ class PPOConfig:
     learning_rate: float = 1e-3
     """Adam learning rate (paper grid: 0.01, 5e-3, 1e-3, 1e-4)."""
     init_std: float = 0.5
-    """Initial policy standard deviation (paper grid: 0.3, 0.5, 0.7)."""
+    """Initial policy standard deviation (paper grid: 0.3, 0.5, 0.7, "the stochastic policy variance")."""
+    std_mode: str = "learnt"
+    """The policy's state-independent exploration std: ``learnt``, a parameter every update trains (PPO's, and
+    the meta step's, distillation's or inner steps' of the methods that have them) and that carries over from task
+    to task; ``fixed``, always ``init_std``, never trained by anything (no gradient reaches it: the authors'
+    prototype, whose std is not among the policy's trainable parameters); ``reset``, learnt within a task and set
+    back to ``init_std`` when a new task starts, for every method that carries parameters from task to task
+    (docs/design.md, "The exploration std")."""
     hidden_sizes: tuple[int, ...] = (128, 64)
     """Hidden layer widths of the policy and value MLPs (paper: [128, 64])."""
     clip_epsilon: float = 0.2
@@ -92,6 +99,7 @@ class PPOConfig:
                     "an integer >= 1, or 0 for the whole batch")
         check_field(self.learning_rate > 0, "learning_rate", self.learning_rate, "a number > 0")
         check_field(self.init_std > 0, "init_std", self.init_std, "a number > 0")
+        check_field(self.std_mode in networks.STD_MODES, "std_mode", self.std_mode, ", ".join(networks.STD_MODES))
         check_field(len(self.hidden_sizes) >= 1 and all(h >= 1 for h in self.hidden_sizes), "hidden_sizes",
                self.hidden_sizes, "one or more positive layer widths")
         check_field(self.clip_epsilon > 0, "clip_epsilon", self.clip_epsilon, "a number > 0")
@@ -107,6 +115,16 @@ class PPOConfig:
     def budget_for(self, family: Family) -> int:
         """Iterations per task for ``family``."""
         return family.default_budget if self.budget is None else self.budget
+
+    def trained(self, policy: dict) -> dict:
+        """``policy`` as the updates see it: with ``std_mode="fixed"`` its std is a constant of every gradient
+        (``networks.held_std``), else unchanged."""
+        return networks.held_std(policy) if self.std_mode == "fixed" else policy
+
+    def task_start(self, policy: dict) -> dict:
+        """The policy a new task's RL step starts from, given the one the last task left: with
+        ``std_mode="reset"`` its std back at ``init_std``, else unchanged."""
+        return networks.with_std(policy, self.init_std) if self.std_mode == "reset" else policy
 
 
 SURROGATES = ("clipped", "vanilla")
@@ -131,6 +149,7 @@ class RLStepResult(NamedTuple):
         reached the threshold, or ``budget`` if it never did.
       solved: bool[], whether the threshold was reached.
       aux: whatever the ``observe`` hook accumulated (None without a hook).
+      health: ``plasticity.PolicyHealth`` of the policy the step started from and the one it ended with.
     """
 
     params: networks.ActorCriticParams
@@ -139,6 +158,7 @@ class RLStepResult(NamedTuple):
     iterations: jax.Array
     solved: jax.Array
     aux: Any
+    health: plasticity.PolicyHealth
 
 
 def make_optimizer(config: PPOConfig) -> optax.GradientTransformation:
@@ -182,7 +202,7 @@ def ppo_loss(params: networks.ActorCriticParams, batch: dict, config: PPOConfig,
     adv = batch["advantage"]
     if config.normalize_advantages:
         adv = masked_standardize(adv, mask)
-    mean, log_std = policy_fns.dist(params.policy, batch["obs"])
+    mean, log_std = policy_fns.dist(config.trained(params.policy), batch["obs"])
     log_prob = networks.gaussian_log_prob(mean, log_std, batch["action"])
     log_ratio = log_prob - batch["log_prob"]
     ratio = jnp.exp(log_ratio)
@@ -304,5 +324,7 @@ def rl_step(config: PPOConfig, family: Family, params: networks.ActorCriticParam
 
     out = rl_loop.iterate(collect, update, (params, opt_state), rng, threshold=family.success_threshold,
                           budget=budget, aux=aux, progress_fn=progress_fn, stop_at_threshold=stop_at_threshold,
-                          run_at_least=run_at_least)
-    return RLStepResult(*out.state, out.metrics, out.iterations, out.solved, out.aux)
+                          run_at_least=run_at_least, states=plasticity.empty_states(family, config.num_trajectories))
+    health = plasticity.policy_health(policy_fns, params.policy, out.state[0].policy, out.first_states,
+                                      out.last_states)
+    return RLStepResult(*out.state, out.metrics, out.iterations, out.solved, out.aux, health)

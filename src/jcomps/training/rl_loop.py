@@ -26,6 +26,7 @@ from jcomps import progress
 from jcomps.numerics import all_finite
 from jcomps.progress import ProgressFn
 from jcomps.training import acting
+from jcomps.training.plasticity import States
 
 
 class IterationMetrics(NamedTuple):
@@ -89,12 +90,15 @@ class Collected(NamedTuple):
       mean_return: f32[], the undiscounted return per episode of the episodes that measure the iteration.
       success_rate: f32[], their success rate.
       finite: bool[], whether every collected observation and reward is finite (no update otherwise).
+      states: the measured episodes' ``plasticity.States`` (what the loop keeps with ``iterate(states=...)``);
+        None: not given.
     """
 
     batch: Any
     mean_return: jax.Array
     success_rate: jax.Array
     finite: jax.Array
+    states: Optional[States] = None
 
 
 def episode_stats(family, traj) -> tuple[jax.Array, jax.Array]:
@@ -107,7 +111,7 @@ def collected(family, batch, measured, *others) -> Collected:
     finiteness is that of ``measured`` and the trajectories ``others`` (observations and rewards)."""
     mean_return, success_rate = episode_stats(family, measured)
     finite = all_finite(tuple((t.obs, t.reward) for t in (measured, *others)))
-    return Collected(batch, mean_return, success_rate, finite)
+    return Collected(batch, mean_return, success_rate, finite, States(measured.obs, measured.valid))
 
 
 CollectFn = Callable[[Any, Any, tuple, jax.Array], tuple[Any, Any, Collected]]
@@ -131,6 +135,8 @@ class LoopResult(NamedTuple):
         ``budget`` if none was.
       solved: bool[], whether the threshold was reached.
       rng: the carry key after the last iteration.
+      first_states, last_states: the ``plasticity.States`` of the first and the last iteration's measured episodes
+        (with ``iterate(states=...)``; else None).
     """
 
     state: Any
@@ -139,6 +145,8 @@ class LoopResult(NamedTuple):
     iterations: jax.Array
     solved: jax.Array
     rng: jax.Array
+    first_states: Optional[States] = None
+    last_states: Optional[States] = None
 
 
 def empty_metrics(budget: int) -> IterationMetrics:
@@ -162,11 +170,14 @@ class _Carry(NamedTuple):
     it: jax.Array
     solved: jax.Array
     metrics: IterationMetrics
+    first: Optional[States]
+    last: Optional[States]
 
 
 def iterate(collect: CollectFn, update: UpdateFn, state, rng: jax.Array, *, threshold: float, budget: int,
             collect_keys: int = 1, aux: Any = None, progress_fn: Optional[ProgressFn] = None,
-            stop_at_threshold: bool = True, run_at_least: Optional[int] = None) -> LoopResult:
+            stop_at_threshold: bool = True, run_at_least: Optional[int] = None,
+            states: Optional[States] = None) -> LoopResult:
     """Iterations of ``collect`` then ``update`` until the success rate reaches ``threshold`` or ``budget``
     iterations ran.
 
@@ -175,7 +186,9 @@ def iterate(collect: CollectFn, update: UpdateFn, state, rng: jax.Array, *, thre
     update). ``stop_at_threshold=False`` runs the whole budget, updating after every
     iteration (fixed-budget adaptation), or with ``run_at_least`` stops once the threshold has been reached and at
     least that many iterations ran (the metrics of the iterations run are the same either way; later ones are left
-    unrun: ``valid`` False, zeros). Jittable; ``collect``, ``update`` and the keyword arguments are static.
+    unrun: ``valid`` False, zeros). ``states``, zeros shaped as one iteration's measured states
+    (``plasticity.empty_states``), keeps the first and the last iteration's (``Collected.states``) for the plasticity
+    measures. Jittable; ``collect``, ``update`` and the keyword arguments are static.
     """
 
     def cond(c: _Carry):
@@ -208,12 +221,18 @@ def iterate(collect: CollectFn, update: UpdateFn, state, rng: jax.Array, *, thre
         bad = jnp.maximum(bad.astype(jnp.float32), 1.0 - col.finite.astype(jnp.float32))
         row = IterationMetrics(col.mean_return, col.success_rate, *terms, bad, jnp.array(True))
         metrics = jax.tree.map(lambda m, v: m.at[c.it].set(v), c.metrics, row)
-        return _Carry(state, aux, keys[0], c.it + 1, solved, metrics)
+        first, last = c.first, c.last
+        if states is not None:
+            if col.states is None:
+                raise ValueError("iterate(states=...) needs the collection's states (Collected.states)")
+            first = jax.tree.map(lambda kept, now: jnp.where(c.it == 0, now, kept), first, col.states)
+            last = col.states
+        return _Carry(state, aux, keys[0], c.it + 1, solved, metrics, first, last)
 
-    init = _Carry(state, aux, rng, jnp.int32(0), jnp.array(False), empty_metrics(budget))
+    init = _Carry(state, aux, rng, jnp.int32(0), jnp.array(False), empty_metrics(budget), states, states)
     out = jax.lax.while_loop(cond, body, init)
     if stop_at_threshold:
         iterations, solved = out.it, out.solved
     else:
         iterations, solved = first_success(out.metrics.success_rate, threshold, budget)
-    return LoopResult(out.state, out.aux, out.metrics, iterations, solved, out.rng)
+    return LoopResult(out.state, out.aux, out.metrics, iterations, solved, out.rng, out.first, out.last)
