@@ -292,11 +292,20 @@ def test_gaussian_kl_is_zero_for_equal_policies_and_positive_otherwise():
 
 @pytest.mark.parametrize("name", ["maml_tl", "pnc"])
 def test_learn_task_reports_the_shared_metrics(name):
+    """... and, with ``std_mode="reset"`` (PNC carrying its active column over), starts the task at ``init_std``
+    whatever std the last task left (tests/test_exploration.py has the other methods and modes)."""
     family = envs.make("point_goal")
     base = methods.default_config(name, family)
-    method = methods.make(name, family, dataclasses.replace(base, ppo=TINY_PPO))
+    extra = {"reset_active": False} if name == "pnc" else {}
+    method = methods.make(name, family, dataclasses.replace(base, ppo=dataclasses.replace(TINY_PPO, std_mode="reset"),
+                                                            **extra))
     state = method.init(jax.random.PRNGKey(0))
+    narrowed = lambda policy: {**policy, "log_std": jnp.full_like(policy["log_std"], np.log(0.05))}  # noqa: E731
+    state = state._replace(params=state.params._replace(policy=narrowed(state.params.policy)))
+    if name == "pnc":
+        state = state._replace(active=narrowed(state.active))
     state2, metrics = jax.jit(method.learn_task)(state, envs.task_at(family, 0))
+    np.testing.assert_allclose(float(metrics.policy_health.std_start), TINY_PPO.init_std, rtol=1e-6)
     assert metrics.per_iteration.valid.shape == (4,)
     assert 1 <= int(metrics.iterations) <= 4 and int(state2.task_index) == 1
     chex.assert_trees_all_equal_shapes_and_dtypes(state2, state)  # a lax.scan over tasks can carry it
