@@ -4,12 +4,13 @@ import dataclasses
 
 import chex
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from jcomps import configs, continual, envs, methods
 from jcomps.methods import comps
-from jcomps.training import meta, ppo
+from jcomps.training import meta, networks, ppo
 
 SMALL_PPO = ppo.PPOConfig(num_trajectories=4, num_updates=2, minibatch_size=32, hidden_sizes=(16,), budget=3)
 SMALL_META = meta.MetaConfig(num_meta_steps=2, num_outer_steps=1, inner_trajectories=2, skilled_trajectories=2)
@@ -212,3 +213,28 @@ def test_learning_past_max_tasks_is_refused():
     full = method.init(jax.random.PRNGKey(0))._replace(task_index=jax.numpy.int32(2))
     with pytest.raises(ValueError, match="past max_tasks=2"):
         method.learn_task(full, envs.task_at(family, 0))
+
+
+def test_learnt_inner_step_sizes_live_in_the_policy_and_survive_every_meta_start():
+    """Meta-SGD's step sizes (``MetaConfig.inner_step_sizes="learnt"``) are θ's: they start at α, every reading of
+    where the meta step starts keeps the meta-learnt ones, and no gradient of PPO's loss reaches them."""
+    family = envs.make("point_goal")
+    learnt_meta = dataclasses.replace(SMALL_META, inner_step_sizes="learnt")
+    for fields in ({}, {"warm_start_std": "meta"}, {"warm_start": False}, {"warm_start": False, "meta_start": "last"}):
+        config = comps.CoMPSConfig(ppo=SMALL_PPO, meta=learnt_meta, max_tasks=2, num_skilled=3, num_offpolicy=5,
+                                   **fields)
+        state = methods.make("comps", family, config).init(jax.random.PRNGKey(0))
+        for policy in (state.params.policy, state.meta.policy):
+            for leaf in jax.tree.leaves(policy["inner_lr"]):
+                np.testing.assert_array_equal(np.asarray(leaf), np.float32(learnt_meta.inner_learning_rate))
+        learnt = {**state.params.policy, "inner_lr": jax.tree.map(lambda x: x * 3.0, state.params.policy["inner_lr"])}
+        chex.assert_trees_all_equal(comps.meta_start(config, state, learnt)["inner_lr"], learnt["inner_lr"])
+    params = networks.ActorCriticParams(state.params.policy, state.params.value)
+    n = 8
+    batch = {"obs": jnp.ones((n, family.obs_size)), "action": jnp.full((n, family.action_size), 0.3),
+             "log_prob": jnp.full((n,), -1.0), "valid": jnp.ones((n,)), "advantage": jnp.linspace(-1.0, 1.0, n),
+             "target": jnp.ones((n,))}
+    grads = jax.grad(lambda p: ppo.ppo_loss(p, batch, SMALL_PPO)[0])(params)
+    for leaf in jax.tree.leaves(grads.policy["inner_lr"]):
+        np.testing.assert_array_equal(np.asarray(leaf), 0.0)
+    assert float(jnp.max(jnp.abs(grads.policy["mean"][0]["w"]))) > 0

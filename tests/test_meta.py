@@ -487,3 +487,36 @@ def test_fitting_a_new_head_recovers_the_returns_of_its_data():
         chex.assert_trees_all_equal(meta.head_params(fitted, slot), meta.head_params(value, slot))
     no_fit = dataclasses.replace(config, value_fit_steps=0)
     chex.assert_trees_all_equal(meta.fit_head(no_fit, policy, value, 1, off), value)
+
+
+def test_learnt_inner_step_sizes_start_at_alpha_and_are_meta_learnt_per_parameter():
+    """Meta-SGD: at its initialisation (every size α) the objective and its gradient in θ are the fixed-α ones; the
+    outer update then moves the sizes, one per parameter, and leaves the fixed reading without any."""
+    learnt = dataclasses.replace(CONFIG, inner_step_sizes="learnt")
+    stores, batch = _slot_batch(16)
+    policy, value = _params()
+    with_sizes = meta.with_inner_step_sizes(learnt, policy)
+    assert meta.with_inner_step_sizes(CONFIG, policy) is policy
+    assert meta.with_inner_step_sizes(learnt, with_sizes) is with_sizes  # already has them: kept as they are
+    chex.assert_trees_all_equal_shapes(with_sizes["inner_lr"], {k: policy[k] for k in meta.STEPPED})
+    fixed_loss, fixed_grad = jax.value_and_grad(lambda p: meta.slot_objective(CONFIG, p, value, 0, batch)[0])(policy)
+    loss, grad = jax.value_and_grad(lambda p: meta.slot_objective(learnt, p, value, 0, batch)[0])(with_sizes)
+    np.testing.assert_allclose(float(loss), float(fixed_loss), rtol=1e-6)
+    chex.assert_trees_all_close({k: grad[k] for k in meta.STEPPED}, {k: fixed_grad[k] for k in meta.STEPPED},
+                                rtol=1e-5, atol=1e-7)
+    assert float(jnp.max(jnp.abs(grad["inner_lr"]["mean"][0]["w"]))) > 0  # the outer loss reaches each size
+    # A size scales its own parameter's step: zero one layer's sizes and that layer is not adapted.
+    frozen = {**with_sizes, "inner_lr": {**with_sizes["inner_lr"], "mean": [
+        jax.tree.map(jnp.zeros_like, with_sizes["inner_lr"]["mean"][0]), *with_sizes["inner_lr"]["mean"][1:]]}}
+    off = batch.off
+    head = meta.head_params(value, 0)
+    log_prob, vjp = jax.vjp(lambda p: networks.GAUSSIAN.log_prob(p, off.traj.obs, off.traj.action), frozen)
+    values = networks.value_apply(head, networks.normalize_obs(frozen, off.traj.obs))
+    bootstrap = networks.value_apply(head, networks.normalize_obs(frozen, off.traj.last_obs))
+    advantages, _, _ = meta._vtrace_terms(learnt, log_prob, values, bootstrap, off)
+    adapted = meta.adapt(learnt, frozen, off, advantages, vjp)
+    chex.assert_trees_all_equal(adapted["mean"][0], frozen["mean"][0])
+    assert float(jnp.max(jnp.abs(adapted["mean"][1]["w"] - frozen["mean"][1]["w"]))) > 0
+    state, _ = meta.meta_train(learnt, _meta_state(with_sizes, value, learnt), stores, jax.random.PRNGKey(6))
+    moved = state.policy["inner_lr"]["mean"][0]["w"] - CONFIG.inner_learning_rate
+    assert float(jnp.max(jnp.abs(moved))) > 0 and float(jnp.std(moved)) > 0  # per parameter, not one shared size

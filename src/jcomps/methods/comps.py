@@ -109,8 +109,9 @@ def meta_start(config: CoMPSConfig, state: CoMPSState, learnt: dict) -> dict:
     """The policy the meta step after a task starts from: with the warm start (FTML), ``learnt``, the policy that
     has just learnt the task; else the task slot's fresh initialisation (``meta_start="fresh"``) or the last meta
     policy (``"last"``), either with ``learnt``'s observation statistics (they describe the data the policy will
-    see, not a learnt quantity). With the warm start and ``warm_start_std="meta"``, ``learnt`` with the last meta
-    policy's std."""
+    see, not a learnt quantity) and its meta-learnt inner step sizes (``meta.with_inner_step_sizes``: they belong
+    to the meta-learner, not to an initialisation). With the warm start and ``warm_start_std="meta"``, ``learnt``
+    with the last meta policy's std."""
     if config.warm_start:
         if config.warm_start_std == "meta":
             return {**learnt, "log_std": state.meta.policy["log_std"]}
@@ -119,7 +120,7 @@ def meta_start(config: CoMPSConfig, state: CoMPSState, learnt: dict) -> dict:
         base = jax.tree.map(lambda x: jax.lax.dynamic_index_in_dim(x, state.task_index, keepdims=False), state.fresh)
     else:
         base = state.meta.policy
-    return {**base, "obs_norm": learnt["obs_norm"]}
+    return {**base, **{k: learnt[k] for k in ("obs_norm", "inner_lr") if k in learnt}}
 
 
 def make(family: Family, config: CoMPSConfig = CoMPSConfig(), progress_fn: Optional[ProgressFn] = None,
@@ -135,6 +136,7 @@ def make(family: Family, config: CoMPSConfig = CoMPSConfig(), progress_fn: Optio
         k_fresh = rng
         rng, k_ac, k_v = jax.random.split(rng, 3)
         params = ppo.init_params(config.ppo, family, k_ac)
+        params = params._replace(policy=meta.with_inner_step_sizes(mconfig, params.policy))
         value = meta.init_value_heads(k_v, family.obs_size, config.ppo.hidden_sizes, config.max_tasks)
         meta_state = meta.MetaState(params.policy, value, policy_opt.init(params.policy), value_opt.init(value))
         stores = buffers.sequence_init_like(buffers.rollout_example(family, B), config.max_tasks,

@@ -41,6 +41,12 @@ class MetaConfig:
     inner_learning_rate: float = 0.005
     """α, the inner policy-gradient step size (paper: 0.005 Ant and Cheetah, 0.0025 MetaWorld); 0: no inner step
     (φ_j = θ: the meta step is multi-task behaviour cloning, whose inner-step gain is 0)."""
+    inner_step_sizes: str = "fixed"
+    """The inner step's size: ``fixed``, the one α ``inner_learning_rate`` for every parameter (the paper); ``learnt``,
+    one step size per policy parameter, kept in the policy (``policy["inner_lr"]``, ``with_inner_step_sizes``),
+    initialised at ``inner_learning_rate`` and meta-learnt with θ by the outer loss (Meta-SGD, Li et al. 2017: the
+    authors' prototype's policy, ``maml_minimal_gauss_mlp_policy_adaptivestep_ppo``). Updates other than the meta
+    step's outer one leave them unchanged: no other loss reads them."""
     num_meta_steps: int = 25
     """Meta training steps after each task (paper: 25)."""
     num_outer_steps: int = 5
@@ -135,6 +141,8 @@ class MetaConfig:
         check_field(self.inner_ratio_clip == 0 or not self.importance_sampling, "inner_ratio_clip",
                     self.inner_ratio_clip, "0 with importance_sampling (the clip is the unweighted rungs' option)")
         check_field(self.outer_loss in OUTER_LOSSES, "outer_loss", self.outer_loss, ", ".join(OUTER_LOSSES))
+        check_field(self.inner_step_sizes in INNER_STEP_SIZES, "inner_step_sizes", self.inner_step_sizes,
+                    ", ".join(INNER_STEP_SIZES))
         check_field(self.outer_update in OUTER_UPDATES, "outer_update", self.outer_update, ", ".join(OUTER_UPDATES))
         check_field(self.reward_scale is None or self.reward_scale > 0, "reward_scale", self.reward_scale,
                     "None (the RL step's) or a number > 0")
@@ -144,6 +152,7 @@ class MetaConfig:
 
 
 OUTER_UPDATES = ("mean", "sequential")
+INNER_STEP_SIZES = ("fixed", "learnt")
 OUTER_LOSSES = ("nll", "mean_mse")
 VALUE_INITS = ("rl_step", "random")
 OPTIMIZER_STATES = ("carry", "reset")
@@ -264,7 +273,26 @@ def adapt(config: MetaConfig, policy, off: buffers.OffPolicyStore, advantages, l
     (grads,) = log_prob_vjp(advantages * mask / jnp.maximum(jnp.sum(mask), 1.0))
     if config.first_order:
         grads = jax.lax.stop_gradient(grads)
-    return jax.tree.map(lambda p, g: p + config.inner_learning_rate * g, policy, grads)
+    sizes = policy.get("inner_lr")
+    if sizes is None:
+        return jax.tree.map(lambda p, g: p + config.inner_learning_rate * g, policy, grads)
+    # Meta-SGD: each parameter steps by its own (meta-learnt) size.
+    return {**policy, **{k: jax.tree.map(lambda p, a, g: p + a * g, policy[k], sizes[k], grads[k]) for k in sizes}}
+
+
+STEPPED = ("mean", "log_std")
+"""The entries of a policy that the inner step moves and that have learnt step sizes (not its statistics)."""
+
+
+def with_inner_step_sizes(config: MetaConfig, policy: dict) -> dict:
+    """``policy`` with one inner step size per parameter of its ``STEPPED`` entries, all at
+    ``config.inner_learning_rate`` (``policy["inner_lr"]``), where ``inner_step_sizes`` is ``learnt`` and it has none
+    yet; else ``policy`` unchanged."""
+    if config.inner_step_sizes != "learnt" or "inner_lr" in policy:
+        return policy
+    alpha = jnp.asarray(config.inner_learning_rate, jnp.float32)
+    return {**policy, "inner_lr": {k: jax.tree.map(lambda x: jnp.full(x.shape, alpha, jnp.float32), policy[k])
+                                   for k in STEPPED}}
 
 
 def bc_loss(policy, obs, action, valid):
