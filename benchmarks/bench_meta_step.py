@@ -1,12 +1,14 @@
 """Time of one jitted CoMPS meta step (second order) on CPU, at paper sizes, with 1, 10 and 40 stored tasks.
 
 Ant sizes: obs 27, action 8, policy [128, 64]; per task 2,000 inner samples (10 trajectories of 200 steps from D_j)
-and 2,000 skilled samples (10 trajectories from D*_j). One meta step = sampling both batches for every task, the
-inner policy-gradient step per task, the behaviour-cloning outer gradient through it, the value-head gradient and
-both Adam updates. ``ratio_to_bc`` compares it with one plain BC gradient step (plus Adam) on the same skilled
-data. One line per case as ``key=value`` pairs.
+and 2,000 skilled samples (10 trajectories from D*_j), or as many as ``--inner-trajectories`` and
+``--skilled-trajectories`` ask (100 and 20: every trajectory the stores hold, a full batch). One meta step =
+sampling both batches for every task, the inner policy-gradient step per task, the behaviour-cloning outer gradient
+through it, the value-head gradient and both Adam updates. ``ratio_to_bc`` compares it with one plain BC gradient
+step (plus Adam) on the same skilled data. One line per case as ``key=value`` pairs.
 
-    python benchmarks/bench_meta_step.py [--tasks 1 10 40] [--repeats 10] [--first-order] [--task-chunk 0]
+    python benchmarks/bench_meta_step.py [--tasks 1 10 40] [--repeats 10] [--first-order] [--task-chunk 0] \
+        [--inner-trajectories 10 100] [--skilled-trajectories 10]
 """
 
 from __future__ import annotations
@@ -50,9 +52,9 @@ def _best(fn, args, repeats):
     return compile_s, min(times)
 
 
-def bench(num_tasks: int, repeats: int, first_order: bool, chunk: int = 0) -> str:
-    config = meta.MetaConfig(num_meta_steps=1, num_outer_steps=1, inner_trajectories=10, skilled_trajectories=10,
-                             first_order=first_order, task_chunk=chunk)
+def bench(num_tasks: int, repeats: int, first_order: bool, chunk: int = 0, inner: int = 10, skilled: int = 10) -> str:
+    config = meta.MetaConfig(num_meta_steps=1, num_outer_steps=1, inner_trajectories=inner,
+                             skilled_trajectories=skilled, first_order=first_order, task_chunk=chunk)
     stores = _stores(num_tasks)
     policy = networks.init_actor_critic(jax.random.PRNGKey(0), OBS, ACT, HIDDEN, 0.5).policy
     value = meta.init_value_heads(jax.random.PRNGKey(1), OBS, HIDDEN, num_tasks)
@@ -72,8 +74,9 @@ def bench(num_tasks: int, repeats: int, first_order: bool, chunk: int = 0) -> st
         return optax.apply_updates(policy, updates), opt_state
 
     _, bc_s = _best(bc_step, (policy, adam.init(policy), batches), repeats)
-    samples = num_tasks * (10 * T + 10 * T)
-    return (f"tasks={num_tasks} order={'first' if first_order else 'second'} "
+    samples = num_tasks * (inner * T + skilled * T)
+    return (f"tasks={num_tasks} inner_trajectories={inner} skilled_trajectories={skilled} "
+            f"order={'first' if first_order else 'second'} "
             f"task_chunk={meta.task_chunk(config, num_tasks)} compile_s={meta_compile:.1f} "
             f"step_s={meta_s:.4f} samples_per_s={samples / meta_s:.0f} bc_step_s={bc_s:.4f} "
             f"ratio_to_bc={meta_s / bc_s:.2f}")
@@ -89,11 +92,17 @@ def main():
     parser.add_argument("--first-order", action="store_true")
     parser.add_argument("--task-chunk", nargs="+", type=int, default=[0],
                         help="slots per loop iteration of the meta step (0: by backend, 1 on CPU, 8 elsewhere)")
+    parser.add_argument("--inner-trajectories", nargs="+", type=int, default=[10],
+                        help="trajectories of D_j per inner step (the stores hold 100 per task)")
+    parser.add_argument("--skilled-trajectories", nargs="+", type=int, default=[10],
+                        help="trajectories of D*_j per outer step (the stores hold 20 per task)")
     args = parser.parse_args()
     print(f"backend={jax.default_backend()} devices={jax.device_count()}", flush=True)
     for chunk in args.task_chunk:
         for n in args.tasks:
-            print(bench(n, args.repeats, args.first_order, chunk), flush=True)
+            for inner in args.inner_trajectories:
+                for skilled in args.skilled_trajectories:
+                    print(bench(n, args.repeats, args.first_order, chunk, inner, skilled), flush=True)
 
 
 if __name__ == "__main__":
