@@ -163,8 +163,10 @@ def test_family_defaults_are_valid_configs():
         config = methods.with_family_settings(ppo.PPOConfig(), family)
         for field, value in envs.settings(family, "ppo").items():
             assert getattr(config, field) == value
-        for name in (m for m in methods.METHODS if m != "pearl"):  # every PPO-based method's RL step (not gmps's)
-            expected = dataclasses.replace(config, **methods.REGISTRY[name].rl_step)
+        for name in (m for m in methods.METHODS if m != "pearl"):  # every PPO-based method's RL step
+            entry = methods.REGISTRY[name]
+            own = entry.family_settings.get(family, {}).get("ppo", {})
+            expected = dataclasses.replace(config, **{**entry.rl_step, **own})
             assert methods.default_config(name, family).ppo == expected, name
     assert not methods.default_config("ppo_tl", "point_goal").ppo.normalize_observations
 

@@ -53,11 +53,15 @@ class Registered(NamedTuple):
       make: ``(family, config, progress_fn) -> Method``.
       rl_step: PPO fields that define the method's RL step; they stay in force over the family's calibrated PPO
         settings (``gmps``'s vanilla policy gradient keeps one gradient step per iteration on every family).
+      family_settings: {family: {part: {field: value}}}, the method's own calibration on a family, over the
+        family's (``gmps`` on Point Goal: its vanilla policy gradient solves nothing at the family's reward scale,
+        docs/families.md); ``part`` names a config part as ``jcomps.envs.settings`` does (``"ppo"``, ``"meta"``).
     """
 
     default: Any
     make: Callable[..., Method]
     rl_step: dict = {}
+    family_settings: Mapping[str, Mapping[str, Mapping[str, Any]]] = {}
 
 
 # Whether the inner step's advantages are standardised per task (GMPS's ``center_adv``) is one choice for the whole
@@ -67,6 +71,12 @@ STANDARDISED_INNER_ADVANTAGES = False
 _META = meta.MetaConfig(normalize_advantages=STANDARDISED_INNER_ADVANTAGES)
 _NO_IS = dataclasses.replace(_META, importance_sampling=False, vtrace_baseline=False)
 _VANILLA_PG = {"num_updates": 1, "minibatch_size": 0, "surrogate": "vanilla"}
+# GMPS's RL step calibrated on Point Goal (docs/families.md, "GMPS's vanilla policy gradient on Point Goal"): no
+# learning rate solves task 1 at the family's reward scale of 0.1, 3e-3 is the best at 1; the meta step works in
+# the RL step's reward units, so its inner learning rate is the paper's α = 0.005 there (the other rungs' 0.05 at
+# scale 0.1 is the same step on raw rewards).
+_GMPS_FAMILY_SETTINGS = {"point_goal": {"ppo": {"reward_scale": 1.0, "learning_rate": 3e-3},
+                                        "meta": {"inner_learning_rate": 0.005}}}
 
 REGISTRY: Registry[Registered] = Registry("method")
 REGISTRY.update({
@@ -74,7 +84,8 @@ REGISTRY.update({
     "ppo": Registered(ppo_tl.PPOTLConfig(), ppo_tl.make_scratch),
     "comps": Registered(comps.CoMPSConfig(meta=_META), comps.make),
     "gmps": Registered(comps.CoMPSConfig(ppo=dataclasses.replace(ppo.PPOConfig(), **_VANILLA_PG), meta=_NO_IS,
-                                         warm_start=False), comps.named("gmps"), _VANILLA_PG),
+                                         warm_start=False), comps.named("gmps"), _VANILLA_PG,
+                       _GMPS_FAMILY_SETTINGS),
     "gmps_ppo": Registered(comps.CoMPSConfig(meta=_NO_IS, warm_start=False), comps.named("gmps_ppo")),
     "gmps_ppo_is": Registered(comps.CoMPSConfig(meta=_META, warm_start=False), comps.named("gmps_ppo_is")),
     "gmps_ppo_last": Registered(comps.CoMPSConfig(meta=_NO_IS, warm_start=False, meta_start="last"),
@@ -91,7 +102,9 @@ REGISTRY.update({
 # The paper's ablation ladder (appendix "CoMPS Ablation"): (lower rung, upper rung, the feature the upper adds).
 # Every pair differs in the config fields of its feature and in nothing else (tested).
 LADDER_FEATURES: dict[str, tuple[str, ...]] = {
-    "PPO as the RL step": ("ppo.num_updates", "ppo.minibatch_size", "ppo.surrogate"),
+    # The RL step and its calibration (a rung's RL step is tuned for it, as the paper tuned each method).
+    "PPO as the RL step": ("ppo.num_updates", "ppo.minibatch_size", "ppo.surrogate", "ppo.reward_scale",
+                           "ppo.learning_rate", "meta.inner_learning_rate"),
     "importance-sampled inner step with the V-trace baseline": ("meta.importance_sampling", "meta.vtrace_baseline"),
     "skilled data x2": ("num_skilled",),
     "FTML warm start": ("warm_start",),
@@ -132,11 +145,13 @@ METHODS = tuple(REGISTRY)
 """The methods jcomps ships (``names()`` also lists any registered since)."""
 
 
-def register(name: str, default, make_fn: Callable[..., Method], rl_step: Optional[dict] = None) -> None:
+def register(name: str, default, make_fn: Callable[..., Method], rl_step: Optional[dict] = None,
+             family_settings: Optional[Mapping[str, Mapping[str, Mapping[str, Any]]]] = None) -> None:
     """Registers method ``name``: ``default`` is its default config (an instance of its frozen config dataclass),
-    ``make_fn(family, config, progress_fn) -> Method`` builds it, ``rl_step`` as ``Registered.rl_step``. The runner,
-    reports and ``--set`` find it by name from then on (docs/extending.md). A name can be registered once."""
-    REGISTRY.add(name, Registered(default, make_fn, dict(rl_step or {})))
+    ``make_fn(family, config, progress_fn) -> Method`` builds it, ``rl_step`` and ``family_settings`` as
+    ``Registered``'s. The runner, reports and ``--set`` find it by name from then on (docs/extending.md). A name can
+    be registered once."""
+    REGISTRY.add(name, Registered(default, make_fn, dict(rl_step or {}), dict(family_settings or {})))
 
 
 def names() -> tuple[str, ...]:
@@ -167,12 +182,15 @@ def with_family_settings(config, family: Family | str):
 
 def default_config(name: str, family: Family | str):
     """Method ``name``'s default config on ``family``: its registered default with the family's calibrated settings
-    (``with_family_settings``), apart from the fields that define the method's RL step (``Registered.rl_step``)."""
+    (``with_family_settings``), apart from the fields that define the method's RL step (``Registered.rl_step``),
+    then the method's own calibration on the family (``Registered.family_settings``)."""
     entry = _registered(name)
     config = with_family_settings(entry.default, family)
     if entry.rl_step:
         config = dataclasses.replace(config, ppo=dataclasses.replace(config.ppo, **entry.rl_step))
-    return config
+    own = entry.family_settings.get(family if isinstance(family, str) else family.name, {})
+    parts = {part: dataclasses.replace(getattr(config, part), **fields) for part, fields in own.items()}
+    return dataclasses.replace(config, **parts) if parts else config
 
 
 def resolve_config(name: str, family: Family | str, *, stored: Optional[Mapping] = None,
