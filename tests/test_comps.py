@@ -109,9 +109,9 @@ def test_the_meta_step_works_in_the_rl_steps_reward_units_and_learning_rate():
 
 
 def test_point_goals_inner_step_is_the_papers_in_raw_reward_units():
-    """The meta step's advantages are in the RL step's reward units: Point Goal's reward scale (0.1 since issue 44;
-    1 for GMPS's own RL step, calibrated for it) and its inner learning rate multiply to the paper's α = 0.005 on
-    raw rewards, for every rung."""
+    """The meta step's advantages are in its reward units (the RL step's, Point Goal's 0.1 since issue 44, and 0.1
+    too for GMPS, whose RL step is calibrated at 1): they and the inner learning rate multiply to the paper's
+    α = 0.005 on raw rewards, for every rung."""
     for name in ("comps", "gmps", "gmps_ppo", "gmps_ppo_is", "gmps_ppo_is_x2"):
         config = methods.default_config(name, "point_goal")
         assert config.meta.inner_learning_rate * comps.meta_config(config).reward_scale == pytest.approx(0.005)
@@ -121,9 +121,14 @@ def test_gmps_takes_its_own_calibration_on_point_goal_only():
     """GMPS's vanilla policy gradient is calibrated on Point Goal (reward scale 1, learning rate 3e-3,
     docs/families.md); on the other families, and for every other rung, the family's PPO settings hold."""
     gmps, ppo_rung = methods.default_config("gmps", "point_goal"), methods.default_config("gmps_ppo", "point_goal")
-    assert (gmps.ppo.reward_scale, gmps.ppo.learning_rate, gmps.meta.inner_learning_rate) == (1.0, 3e-3, 0.005)
-    assert (ppo_rung.ppo.reward_scale, ppo_rung.meta.inner_learning_rate) == (0.1, 0.05)
+    assert (gmps.ppo.reward_scale, gmps.ppo.learning_rate) == (1.0, 3e-3)
     assert gmps.ppo.surrogate == "vanilla" and gmps.ppo.num_updates == 1
+    assert (ppo_rung.ppo.reward_scale, ppo_rung.meta.inner_learning_rate) == (0.1, 0.05)
+    # Its meta step keeps the other rungs' reward units, so a copy of its critic (trained at scale 1) cannot start
+    # a head.
+    resolved, other = comps.meta_config(gmps), comps.meta_config(ppo_rung)
+    assert (resolved.reward_scale, resolved.inner_learning_rate) == (other.reward_scale, other.inner_learning_rate)
+    assert (gmps.meta.value_init, ppo_rung.meta.value_init) == ("random", "rl_step")
     for family in ("cheetah_vel", "ant_dir"):
         a, b = methods.default_config("gmps", family), methods.default_config("gmps_ppo", family)
         assert (a.ppo.reward_scale, a.ppo.learning_rate, a.meta) == (b.ppo.reward_scale, b.ppo.learning_rate, b.meta)
