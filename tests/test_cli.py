@@ -33,6 +33,9 @@ def test_help_lists_every_option(runner, capsys):
             assert "--" + name.replace("_", "-") in text, name
     # Where a family's calibrated settings replace a default, the help says so.
     assert "ant_dir: 0.001" in " ".join(text.split()), "the MuJoCo families' outer learning rate"
+    # and where a method has its own calibration on a family (GMPS's RL step on Point Goal), even at the default.
+    assert "point_goal (gmps.ppo): 0.003" in " ".join(text.split())
+    assert "point_goal (gmps.ppo): 1.0" in " ".join(text.split())
 
 
 def test_options_build_the_config(runner):

@@ -98,7 +98,8 @@ def add_config_args(parser: argparse.ArgumentParser, classes, family_values: Opt
     """Adds one ``--option`` per distinct leaf field of the config dataclasses ``classes`` (default: unset).
 
     ``family_values`` ({field: {family: value}}, ``jcomps.envs.settings_by_field()``) shows in the help where a family's
-    calibrated settings replace a field's default."""
+    calibrated settings replace a field's default; a key naming a method's own calibration on a family
+    (``"point_goal (gmps.ppo)"``, ``jcomps.methods.settings_by_field()``) is shown even at the default."""
     seen = {o for a in parser._actions for o in a.option_strings}
     family_values = family_values or {}
     for cls in classes:
@@ -112,7 +113,7 @@ def add_config_args(parser: argparse.ArgumentParser, classes, family_values: Opt
             shown = show(default)
             by_value: dict = {}
             for family, value in family_values.get(name, {}).items():
-                if value != default:
+                if value != default or "(" in family:
                     by_value.setdefault(show(value), []).append(family)
             shown += "".join(f"; {', '.join(fams)}: {v}" for v, fams in by_value.items())
             nargs = "+" if typing.get_origin(tp) is tuple else None

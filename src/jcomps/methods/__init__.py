@@ -157,6 +157,18 @@ def register(name: str, default, make_fn: Callable[..., Method], rl_step: Option
     REGISTRY.add(name, Registered(default, make_fn, dict(rl_step or {}), dict(family_settings or {})))
 
 
+def settings_by_field() -> dict[str, dict[str, Any]]:
+    """{field: {"family (method.part)": value}}: the methods' own calibrations (``Registered.family_settings``) by
+    field name, as the command line's help shows them beside the families' (``jcomps.envs.settings_by_field``)."""
+    out: dict[str, dict[str, Any]] = {}
+    for name in names():
+        for family, parts in REGISTRY[name].family_settings.items():
+            for part, fields in parts.items():
+                for field, value in fields.items():
+                    out.setdefault(field, {})[f"{family} ({name}.{part})"] = value
+    return out
+
+
 def names() -> tuple[str, ...]:
     """The registered methods' names, in registration order."""
     return REGISTRY.names()
@@ -252,4 +264,4 @@ def env_steps_per_iteration(name: str, family: Family, config=None) -> int:
 
 __all__ = ["EARLIER_VALUES", "LADDER", "LADDER_FEATURES", "METHODS", "Method", "collection", "REGISTRY", "Registered",
            "TaskMetrics", "config_class", "default_config", "env_steps_per_iteration", "make", "names", "register",
-           "resolve_config", "task_slots", "with_earlier_values", "with_family_settings"]
+           "resolve_config", "settings_by_field", "task_slots", "with_earlier_values", "with_family_settings"]
