@@ -121,10 +121,8 @@ def build_parser() -> argparse.ArgumentParser:
                              "different ones are refused)")
     distributed.add_args(parser)
     configs.add_config_args(parser, [description.RunConfig, continual.EvalConfig])
-    shown = envs.settings_by_field()
-    for field, values in methods.settings_by_field().items():
-        shown[field] = {**shown.get(field, {}), **values}
-    configs.add_config_args(parser, [methods.config_class(m) for m in methods.METHODS], shown)
+    configs.add_config_args(parser, [methods.config_class(m) for m in methods.METHODS], envs.settings_by_field(),
+                            methods.settings_by_field())
     return parser
 
 

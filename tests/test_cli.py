@@ -36,6 +36,7 @@ def test_help_lists_every_option(runner, capsys):
     # and where a method has its own calibration on a family (GMPS's RL step on Point Goal), even at the default.
     assert "point_goal (gmps.ppo): 0.003" in " ".join(text.split())
     assert "point_goal (gmps.ppo): 1.0" in " ".join(text.split())
+    assert "every family (gmps.ppo): vanilla" in " ".join(text.split()), "a method's settings on every family"
 
 
 def test_options_build_the_config(runner):

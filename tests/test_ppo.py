@@ -165,8 +165,9 @@ def test_family_defaults_are_valid_configs():
             assert getattr(config, field) == value
         for name in (m for m in methods.METHODS if m != "pearl"):  # every PPO-based method's RL step
             entry = methods.REGISTRY[name]
+            every = entry.family_settings.get(methods.EVERY_FAMILY, {}).get("ppo", {})
             own = entry.family_settings.get(family, {}).get("ppo", {})
-            expected = dataclasses.replace(config, **{**entry.rl_step, **own})
+            expected = dataclasses.replace(config, **{**every, **own})
             assert methods.default_config(name, family).ppo == expected, name
     assert not methods.default_config("ppo_tl", "point_goal").ppo.normalize_observations
 

@@ -94,14 +94,17 @@ def _parser_for(tp):
     return {int: _parse_int, float: _parse_float}.get(tp, tp)
 
 
-def add_config_args(parser: argparse.ArgumentParser, classes, family_values: Optional[dict] = None) -> None:
+def add_config_args(parser: argparse.ArgumentParser, classes, family_values: Optional[dict] = None,
+                    method_values: Optional[dict] = None) -> None:
     """Adds one ``--option`` per distinct leaf field of the config dataclasses ``classes`` (default: unset).
 
-    ``family_values`` ({field: {family: value}}, ``jcomps.envs.settings_by_field()``) shows in the help where a family's
-    calibrated settings replace a field's default; a key naming a method's own calibration on a family
-    (``"point_goal (gmps.ppo)"``, ``jcomps.methods.settings_by_field()``) is shown even at the default."""
+    The help shows, after a field's default, ``family_values`` ({field: {family: value}},
+    ``jcomps.envs.settings_by_field()``) where a family's calibrated setting differs from the default, then
+    ``method_values`` ({field: {"family (method.part)": value}}, ``jcomps.methods.settings_by_field()``): a method's
+    own calibration on a family, always shown (it replaces the family's value, whatever the default)."""
     seen = {o for a in parser._actions for o in a.option_strings}
-    family_values = family_values or {}
+    family_values, method_values = family_values or {}, method_values or {}
+    show = lambda v: " ".join(map(str, v)) if isinstance(v, tuple) else str(v)  # noqa: E731
     for cls in classes:
         group = parser.add_argument_group(f"{cls.__name__} options")
         for name, tp, default, doc in flat_fields(cls):
@@ -109,13 +112,13 @@ def add_config_args(parser: argparse.ArgumentParser, classes, family_values: Opt
             if flag in seen:
                 continue
             seen.add(flag)
-            show = lambda v: " ".join(map(str, v)) if isinstance(v, tuple) else str(v)  # noqa: E731
-            shown = show(default)
             by_value: dict = {}
             for family, value in family_values.get(name, {}).items():
-                if value != default or "(" in family:
+                if value != default:
                     by_value.setdefault(show(value), []).append(family)
-            shown += "".join(f"; {', '.join(fams)}: {v}" for v, fams in by_value.items())
+            for label, value in method_values.get(name, {}).items():
+                by_value.setdefault(show(value), []).append(label)
+            shown = show(default) + "".join(f"; {', '.join(labels)}: {v}" for v, labels in by_value.items())
             nargs = "+" if typing.get_origin(tp) is tuple else None
             group.add_argument(flag, dest=f"cfg_{name}", type=_parser_for(tp), nargs=nargs, default=None,
                                metavar=name.upper(), help=f"{doc} (default: {shown})".replace("%", "%%"))

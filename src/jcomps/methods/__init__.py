@@ -51,17 +51,21 @@ class Registered(NamedTuple):
     Attributes:
       default: its default config (an instance of its config dataclass).
       make: ``(family, config, progress_fn) -> Method``.
-      rl_step: PPO fields that define the method's RL step; they stay in force over the family's calibrated PPO
-        settings (``gmps``'s vanilla policy gradient keeps one gradient step per iteration on every family).
-      family_settings: {family: {part: {field: value}}}, the method's own calibration on a family, over the
-        family's (``gmps`` on Point Goal: its vanilla policy gradient solves nothing at the family's reward scale,
-        docs/families.md); ``part`` names a config part as ``jcomps.envs.settings`` does (``"ppo"``, ``"meta"``).
+      family_settings: {family: {part: {field: value}}}, the method's own settings, put over the family's
+        calibrated ones (``jcomps.envs.settings``); ``part`` names a config part as ``jcomps.envs.settings`` does
+        (``"ppo"``, ``"meta"``). The key ``EVERY_FAMILY`` holds the fields that define the method on every family
+        (``gmps``'s vanilla policy gradient keeps one gradient step per iteration, ``pnc`` its columns' sizes), a
+        family's key its calibration there (``gmps`` on Point Goal: its vanilla policy gradient solves nothing at
+        the family's reward scale, docs/families.md), applied after ``EVERY_FAMILY``'s.
     """
 
     default: Any
     make: Callable[..., Method]
-    rl_step: dict = {}
     family_settings: Mapping[str, Mapping[str, Mapping[str, Any]]] = {}
+
+
+EVERY_FAMILY = "every family"
+"""The key of ``Registered.family_settings`` whose settings apply on every family."""
 
 
 # Whether the inner step's advantages are standardised per task (GMPS's ``center_adv``) is one choice for the whole
@@ -77,7 +81,8 @@ _VANILLA_PG = {"num_updates": 1, "minibatch_size": 0, "surrogate": "vanilla"}
 # units its value heads, copies of a critic that does not fit at scale 1, leave advantages of |A| 50-100 and the
 # inner step diverges (the BC loss is infinite from task 2 on, every outer update skipped); in the family's units a
 # copied critic is 10x off, so its heads start afresh and fit (EV 0.8; docs/families.md has the three readings).
-_GMPS_FAMILY_SETTINGS = {"point_goal": {"ppo": {"reward_scale": 1.0, "learning_rate": 3e-3},
+_GMPS_FAMILY_SETTINGS = {EVERY_FAMILY: {"ppo": _VANILLA_PG},
+                         "point_goal": {"ppo": {"reward_scale": 1.0, "learning_rate": 3e-3},
                                         "meta": {"reward_scale": 0.1, "value_init": "random"}}}
 
 REGISTRY: Registry[Registered] = Registry("method")
@@ -86,8 +91,7 @@ REGISTRY.update({
     "ppo": Registered(ppo_tl.PPOTLConfig(), ppo_tl.make_scratch),
     "comps": Registered(comps.CoMPSConfig(meta=_META), comps.make),
     "gmps": Registered(comps.CoMPSConfig(ppo=dataclasses.replace(ppo.PPOConfig(), **_VANILLA_PG), meta=_NO_IS,
-                                         warm_start=False), comps.named("gmps"), _VANILLA_PG,
-                       _GMPS_FAMILY_SETTINGS),
+                                         warm_start=False), comps.named("gmps"), _GMPS_FAMILY_SETTINGS),
     "gmps_ppo": Registered(comps.CoMPSConfig(meta=_NO_IS, warm_start=False), comps.named("gmps_ppo")),
     "gmps_ppo_is": Registered(comps.CoMPSConfig(meta=_META, warm_start=False), comps.named("gmps_ppo_is")),
     "gmps_ppo_last": Registered(comps.CoMPSConfig(meta=_NO_IS, warm_start=False, meta_start="last"),
@@ -97,7 +101,8 @@ REGISTRY.update({
     "gmps_ppo_is_x2": Registered(comps.CoMPSConfig(meta=_META, warm_start=False, num_skilled=40),
                                  comps.named("gmps_ppo_is_x2")),
     "maml_tl": Registered(maml_tl.MAMLTLConfig(), maml_tl.make),
-    "pnc": Registered(pnc.PNCConfig(), pnc.make, {"hidden_sizes": pnc.PNCConfig().ppo.hidden_sizes}),
+    "pnc": Registered(pnc.PNCConfig(), pnc.make,
+                      {EVERY_FAMILY: {"ppo": {"hidden_sizes": pnc.PNCConfig().ppo.hidden_sizes}}}),
     "pearl": Registered(pearl.PEARLConfig(), pearl.make),
 })
 
@@ -148,17 +153,17 @@ METHODS = tuple(REGISTRY)
 """The methods jcomps ships (``names()`` also lists any registered since)."""
 
 
-def register(name: str, default, make_fn: Callable[..., Method], rl_step: Optional[dict] = None,
+def register(name: str, default, make_fn: Callable[..., Method],
              family_settings: Optional[Mapping[str, Mapping[str, Mapping[str, Any]]]] = None) -> None:
     """Registers method ``name``: ``default`` is its default config (an instance of its frozen config dataclass),
-    ``make_fn(family, config, progress_fn) -> Method`` builds it, ``rl_step`` and ``family_settings`` as
-    ``Registered``'s. The runner, reports and ``--set`` find it by name from then on (docs/extending.md). A name can
-    be registered once."""
-    REGISTRY.add(name, Registered(default, make_fn, dict(rl_step or {}), dict(family_settings or {})))
+    ``make_fn(family, config, progress_fn) -> Method`` builds it, ``family_settings`` as ``Registered``'s. The
+    runner, reports and ``--set`` find it by name from then on (docs/extending.md). A name can be registered
+    once."""
+    REGISTRY.add(name, Registered(default, make_fn, dict(family_settings or {})))
 
 
 def settings_by_field() -> dict[str, dict[str, Any]]:
-    """{field: {"family (method.part)": value}}: the methods' own calibrations (``Registered.family_settings``) by
+    """{field: {"family (method.part)": value}}: the methods' own settings (``Registered.family_settings``) by
     field name, as the command line's help shows them beside the families' (``jcomps.envs.settings_by_field``)."""
     out: dict[str, dict[str, Any]] = {}
     for name in names():
@@ -197,15 +202,15 @@ def with_family_settings(config, family: Family | str):
 
 def default_config(name: str, family: Family | str):
     """Method ``name``'s default config on ``family``: its registered default with the family's calibrated settings
-    (``with_family_settings``), apart from the fields that define the method's RL step (``Registered.rl_step``),
-    then the method's own calibration on the family (``Registered.family_settings``)."""
+    (``with_family_settings``), then the method's own settings (``Registered.family_settings``): those for every
+    family, then those for this one."""
     entry = _registered(name)
     config = with_family_settings(entry.default, family)
-    if entry.rl_step:
-        config = dataclasses.replace(config, ppo=dataclasses.replace(config.ppo, **entry.rl_step))
-    own = entry.family_settings.get(family if isinstance(family, str) else family.name, {})
-    parts = {part: dataclasses.replace(getattr(config, part), **fields) for part, fields in own.items()}
-    return dataclasses.replace(config, **parts) if parts else config
+    for key in (EVERY_FAMILY, family if isinstance(family, str) else family.name):
+        own = entry.family_settings.get(key, {})
+        parts = {part: dataclasses.replace(getattr(config, part), **fields) for part, fields in own.items()}
+        config = dataclasses.replace(config, **parts) if parts else config
+    return config
 
 
 def resolve_config(name: str, family: Family | str, *, stored: Optional[Mapping] = None,
@@ -262,6 +267,6 @@ def env_steps_per_iteration(name: str, family: Family, config=None) -> int:
     return base.env_steps_per_iteration(make(name, family, config))
 
 
-__all__ = ["EARLIER_VALUES", "LADDER", "LADDER_FEATURES", "METHODS", "Method", "collection", "REGISTRY", "Registered",
+__all__ = ["EARLIER_VALUES", "EVERY_FAMILY", "LADDER", "LADDER_FEATURES", "METHODS", "Method", "collection", "REGISTRY", "Registered",
            "TaskMetrics", "config_class", "default_config", "env_steps_per_iteration", "make", "names", "register",
            "resolve_config", "settings_by_field", "task_slots", "with_earlier_values", "with_family_settings"]
