@@ -1,7 +1,7 @@
 """Reproduce a family's experiments of the paper: its methods on its sequences, as one study directory, reported
 beside the paper's own numbers.
 
-    python experiments/reproduce.py ant_goal                      # the CPU scale: CoMPS, GMPS+PPO, PPO+TL, 6 tasks
+    python experiments/reproduce.py ant_goal                      # the CPU scale: CoMPS, GMPS+PPO(+IS), PPO+TL, 6 tasks
     python experiments/reproduce.py ant_goal --scale paper        # 6 methods x 2 sequences x 40 tasks x 6 seeds
     python experiments/reproduce.py ant_goal --out ~/studies/ag --resume     # continue every method where it stopped
     python experiments/reproduce.py ant_goal --out ~/studies/ag --partial    # report what is finished so far
@@ -54,8 +54,8 @@ def parse_args(argv=None):
     parser.add_argument("family", help="the family (" + ", ".join(envs.names()) + "); the paper ran "
                         + ", ".join(paper.FAMILIES))
     parser.add_argument("--scale", choices=reproduction.SCALES, default=None,
-                        help="cpu (default): CoMPS, GMPS+PPO and PPO+TL on the first 6 non-stationary tasks, 4 "
-                             "seeds; paper: CoMPS, PPO+TL, GMPS+PPO, MAML+TL, PNC and PEARL on both sequences, 40 "
+                        help="cpu (default): CoMPS, GMPS+PPO, GMPS+PPO+IS and PPO+TL on the first 6 non-stationary "
+                             "tasks, 4 seeds; paper: CoMPS, PPO+TL, GMPS+PPO, MAML+TL, PNC and PEARL on both sequences, 40 "
                              "tasks, 6 seeds (a GPU's or a cluster's)")
     parser.add_argument("--seeds", type=int, default=None, help="seeds per method (default: the scale's)")
     parser.add_argument("--num-tasks", type=int, default=None, help="tasks per sequence (default: the scale's)")

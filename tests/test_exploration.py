@@ -139,3 +139,20 @@ def test_policy_health_reads_std_entropy_and_each_layers_saturation():
     np.testing.assert_allclose(float(health.entropy_end), float(networks.gaussian_entropy(big["log_std"])), rtol=1e-6)
     assert float(health.saturated_start[0]) == 0.0  # a fresh orthogonal layer on unit-scale inputs
     assert float(health.saturated_end[0]) > 0.5  # first-layer weights × 10⁴: most units pinned at ±1
+
+
+def test_the_calibrated_families_fix_the_std_and_earlier_runs_read_as_learnt():
+    """The families with a calibrated fixed std default to it for every PPO-based method (the same RL-step setting
+    for every rung and baseline); MetaWorld, not calibrated, learns it; a run.json made before the modes existed
+    lacks ``std_mode`` and is read as the learnt std it ran with."""
+    from jcomps import configs
+
+    for family, std in (("point_goal", 0.5), ("cheetah_vel", 0.15), ("ant_dir", 0.15), ("ant_goal", 0.1)):
+        for name in (m for m in methods.METHODS if m != "pearl"):
+            config = methods.default_config(name, family).ppo
+            assert (config.std_mode, config.init_std) == ("fixed", std), (name, family)
+    assert methods.default_config("comps", "metaworld").ppo.std_mode == "learnt"
+    stored = configs.to_json(methods.default_config("comps", "ant_dir"))
+    assert methods.resolve_config("comps", "ant_dir", stored=stored).ppo.std_mode == "fixed"
+    del stored["ppo"]["std_mode"]
+    assert methods.resolve_config("comps", "ant_dir", stored=stored).ppo.std_mode == "learnt"

@@ -17,7 +17,7 @@ from jcomps.runner import results
 def test_the_scales():
     cpu = reproduction.protocol("ant_goal")
     assert (cpu.scale, cpu.sequences, cpu.methods, cpu.seeds, cpu.num_tasks, cpu.heldout_iterations) == (
-        "cpu", ("non-stationary",), ("comps", "gmps_ppo", "ppo_tl"), 4, 6, 0)
+        "cpu", ("non-stationary",), ("comps", "gmps_ppo", "gmps_ppo_is", "ppo_tl"), 4, 6, 0)
     full = reproduction.protocol("metaworld", "paper", ablation=True)
     assert full.sequences == ("stationary", "non-stationary") and full.seeds == 6 and full.heldout_iterations == 5
     assert full.num_tasks == 39  # MetaWorld's list; 40 elsewhere

@@ -24,10 +24,11 @@ SEQUENCES = ("stationary", "non-stationary")
 ALPHA = 0.05
 """The significance level of the claims table."""
 
-CPU_METHODS = ("comps", "gmps_ppo", "ppo_tl")
+CPU_METHODS = ("comps", "gmps_ppo", "gmps_ppo_is", "ppo_tl")
 CPU_SEEDS = 4
 CPU_TASKS = 6
-"""The CPU scale: CoMPS, GMPS+PPO and PPO+TL on the first 6 tasks of the non-stationary sequence, 4 seeds, without
+"""The CPU scale: CoMPS, GMPS+PPO, GMPS+PPO+IS (CoMPS without the warm start, its twin in every other field)
+and PPO+TL on the first 6 tasks of the non-stationary sequence, 4 seeds, without
 the held-out meta-test (on the MuJoCo families it would cost as much as the training): a 2-core machine finishes a
 family in hours (docs/results.md has the measured times)."""
 
@@ -112,7 +113,8 @@ def protocol(family: str, scale: str = "cpu", seeds: Optional[int] = None, num_t
     - ``paper``: CoMPS, PPO+TL, GMPS+PPO, MAML+TL, PNC and PEARL (``jcomps.analysis.paper.METHODS``) on both
       sequences, 6 seeds, 40 tasks (the family's list where shorter: MetaWorld's 39), the held-out meta-test's
       5-iteration curve; each family's own budget and calibrated settings (its registered defaults).
-    - ``cpu``: CoMPS, GMPS+PPO and PPO+TL on the first 6 non-stationary tasks, 4 seeds, no held-out test.
+    - ``cpu``: CoMPS, GMPS+PPO, GMPS+PPO+IS and PPO+TL on the first 6 non-stationary tasks, 4 seeds, no
+      held-out test.
 
     ``ablation`` adds the ladder's other rungs (GMPS, GMPS+PPO+IS, ×2 skilled data)."""
     check_field(scale in SCALES, "scale", scale, ", ".join(SCALES))

@@ -122,22 +122,27 @@ def _metaworld(reward: str = "v2") -> Callable[[], Family]:
 # fields (kl_weight = its kl_lambda × its meta_batch); MetaWorld takes oyster's defaults.
 _MUJOCO_PPO = {"reward_scale": 0.1, "num_updates": 256, "learning_rate": 1e-4}
 _MUJOCO_META = {"outer_learning_rate": 0.001}
+# The exploration std as the paper's authors had it (issue 58; docs/design.md, "The exploration std"): fixed at the
+# family's calibrated init_std, never trained (docs/families.md, "The exploration std when it is fixed": Point Goal
+# 0.5, Half-Cheetah 0.15 over its two kinds of task, Ant Direction 0.15, Ant Goal 0.1). MetaWorld keeps the learnt
+# std: no fixed std is calibrated there.
+_FIXED_STD = {"std_mode": "fixed"}
 # Point Goal's PPO keeps the paper's plain settings but for a reward scale of 0.1: with returns of −17 to
 # −100 unscaled, its critic saturated on the first task and predicted one constant (docs/families.md). The meta
 # step's advantages are in the RL step's reward units, so its inner learning rate takes the inverse factor: 0.05
 # on rewards × 0.1 is the paper's α = 0.005 on Point Goal's raw rewards, the inner step it had before.
-register("point_goal", _point_goal, {"ppo": {"normalize_observations": False, "reward_scale": 0.1},
+register("point_goal", _point_goal, {"ppo": {"normalize_observations": False, "reward_scale": 0.1, **_FIXED_STD},
                                      "meta": {"inner_learning_rate": 0.05},
                                      "eval": {"heldout_budget": 50},
                                      "pearl": {"initial_steps": 200}})  # oyster's point-robot.json
 register("cheetah_vel", _mujoco("cheetah_vel"), {
-    "ppo": {**_MUJOCO_PPO, "init_std": 0.15}, "meta": dict(_MUJOCO_META),
+    "ppo": {**_MUJOCO_PPO, **_FIXED_STD, "init_std": 0.15}, "meta": dict(_MUJOCO_META),
     "pearl": {"context_size": 100, "updates_per_step": 0.4, "prior_fraction": 0.4}})  # cheetah-vel.json
 register("ant_goal", _mujoco("ant_goal"), {
-    "ppo": {**_MUJOCO_PPO, "init_std": 0.1}, "meta": dict(_MUJOCO_META),
+    "ppo": {**_MUJOCO_PPO, **_FIXED_STD, "init_std": 0.1}, "meta": dict(_MUJOCO_META),
     "pearl": {"context_size": 256, "updates_per_step": 0.8, "prior_fraction": 0.4, "kl_weight": 10.0}})
 register("ant_dir", _mujoco("ant_dir"), {
-    "ppo": {**_MUJOCO_PPO, "init_std": 0.15}, "meta": dict(_MUJOCO_META),
+    "ppo": {**_MUJOCO_PPO, **_FIXED_STD, "init_std": 0.15}, "meta": dict(_MUJOCO_META),
     "pearl": {"context_size": 256, "updates_per_step": 0.8, "prior_fraction": 0.4, "kl_weight": 0.4}})
 register("metaworld", _metaworld(), {"ppo": dict(_MUJOCO_PPO), "meta": {"inner_learning_rate": 0.0025}})
 # The same tasks with MetaWorld v1's original reward (docs/families.md measures both): its returns are

@@ -130,6 +130,8 @@ EARLIER_VALUES: dict[str, Callable[[Mapping], Any]] = {
     # Runs made before this field existed: the rungs without the warm start started their meta step from the last
     # meta policy.
     "meta_start": lambda stored: None if stored.get("warm_start", True) else "last",
+    # Runs made before the exploration std had modes learnt it (the families' default is ``fixed`` since issue 58).
+    "ppo.std_mode": lambda stored: "learnt",
 }
 
 
