@@ -75,9 +75,10 @@ def test_ci_runs_the_readme_test_command():
     assert block[1] in (ROOT / ".ci" / "run").read_text()
 
 
-def test_the_readme_describes_every_registered_method_and_family():
+def test_the_readme_describes_every_shipped_method_and_family():
     readme = (ROOT / "README.md").read_text()
-    for heading, names in (("### Methods", methods.names()), ("### Families", envs.names())):
+    # what jcomps ships (the registries' names may hold more: docs/extending.md's test registers its examples)
+    for heading, names in (("### Methods", methods.METHODS), ("### Families", envs.FAMILIES)):
         lines = readme[readme.index(heading):].splitlines()[1:]
         rows = [line for line in lines[:next(i for i, x in enumerate(lines) if x and not x.startswith("|"))]
                 if line.startswith("| `")]

@@ -10,7 +10,7 @@ import pytest
 SRC = pathlib.Path(__file__).resolve().parents[1] / "src" / "jcomps"
 
 LAYERS = (
-    ("jcomps", "jcomps.numerics", "jcomps.progress", "jcomps.registry", "jcomps.configs"),
+    ("jcomps", "jcomps.numerics", "jcomps.progress", "jcomps.registry", "jcomps.configs", "jcomps.migrations"),
     ("jcomps.envs",),
     ("jcomps.training",),
     ("jcomps.methods",),

@@ -9,7 +9,7 @@ import shutil
 
 import pytest
 
-from jcomps import continual, methods
+from jcomps import continual, methods, migrations
 from jcomps.runner import description, grid, rundir
 from jcomps.runner.files import RunError
 
@@ -169,7 +169,7 @@ def test_resume_refuses_a_run_made_before_the_learnt_tasks_evaluations(runner, o
 
 def test_resume_refuses_a_run_made_before_the_checkpoints_format(runner, old_run, capsys):
     def edit(stored):
-        assert stored["format"] == description.FORMAT
+        assert stored["format"] == migrations.FORMAT
         del stored["format"]  # as made before issue 44: its checkpoints lack the critic's explained variance
 
     old, _ = old_run("old_format", edit)

@@ -90,7 +90,7 @@ def _parser_for(tp):
             raise argparse.ArgumentTypeError(f"expected true or false, got {s!r}")
         return parse_bool
     if origin is tuple:
-        return _parser_for(args[0])  # one element per command-line word (nargs="+"), made a tuple by build_config
+        return _parser_for(args[0])  # one element per command-line word (nargs="+"), made a tuple by shared_options
     return {int: _parse_int, float: _parse_float}.get(tp, tp)
 
 
@@ -144,21 +144,6 @@ def with_shared(config, shared: dict):
     return dataclasses.replace(config, **changes)
 
 
-def _with_options(config, args: Optional[argparse.Namespace]):
-    """``config`` with the leaf fields given on the command line replaced (every nested occurrence)."""
-    return with_shared(config, shared_options(args))
-
-
-def build_config(cls, args: argparse.Namespace, base=None):
-    """``base`` (an instance of ``cls``: a method's registered default on a family; default ``cls()``) with the
-    options given on the command line put over it. Nothing not named on the command line changes, nested configs
-    included."""
-    base = cls() if base is None else base
-    if not isinstance(base, cls):
-        raise TypeError(f"base must be a {cls.__name__}, got {type(base).__name__}")
-    return _with_options(base, args)
-
-
 def to_json(x):
     """A config dataclass (or a tuple or mapping of them, or a value) as JSON data: dicts of fields, lists for
     tuples; ``config_from_dict`` reads it back."""
@@ -171,19 +156,18 @@ def to_json(x):
     return x
 
 
-def config_from_dict(base, data: dict, args: Optional[argparse.Namespace] = None):
+def config_from_dict(base, data: dict):
     """``base`` (a config instance: the method's registered default on the run's family) with the values of its
-    ``dataclasses.asdict``-like ``data`` (lists become tuples; fields missing from ``data`` keep ``base``'s value)
-    and then any options given on the command line in ``args`` put over it."""
+    ``dataclasses.asdict``-like ``data`` (lists become tuples; fields missing from ``data`` keep ``base``'s value)."""
     changes = {}
     for f in dataclasses.fields(base):
         current = getattr(base, f.name)
         if dataclasses.is_dataclass(current):
-            changes[f.name] = config_from_dict(current, data.get(f.name) or {}, None)
+            changes[f.name] = config_from_dict(current, data.get(f.name) or {})
         elif f.name in data:
             value = data[f.name]
             changes[f.name] = tuple(value) if isinstance(value, list) else value
-    return _with_options(dataclasses.replace(base, **changes), args)
+    return dataclasses.replace(base, **changes)
 
 
 def parse_value(tp, text: str):

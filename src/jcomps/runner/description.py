@@ -5,10 +5,10 @@ the family), every method's resolved config, the hyperparameter grid and the per
 and the device and process counts (float rounding and each process's shards depend on them). ``resolve`` builds
 it from the options a command line gave (the runner's script only parses them); ``to_json`` and ``from_json``
 turn it into a run directory's ``run.json`` and back. ``from_json`` is the one place that reads what older
-versions of jcomps wrote: a field added since a run was made takes the value the run had (its default, or
-``jcomps.methods.EARLIER_VALUES``), and is listed in ``filled``; where the addition changed what checkpoints hold
-(``UNRESUMABLE_BEFORE``, ``UNRESUMABLE_EVAL_BEFORE``, a ``format`` older than ``FORMAT``) the description says why
-the run cannot be resumed (``unresumable``), and stays reportable.
+versions of jcomps wrote, by the tables of ``jcomps.migrations``: a field added since a run was made takes the value
+the run had (its default, or ``EARLIER_VALUES``), and is listed in ``filled``; where the addition changed what
+checkpoints hold (``UNRESUMABLE_BEFORE``, ``UNRESUMABLE_EVAL_BEFORE``, a ``format`` older than ``FORMAT``) the
+description says why the run cannot be resumed (``unresumable``), and stays reportable.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from typing import Any, Mapping, Optional
 
 import jax
 
-from jcomps import configs, continual, envs, methods
+from jcomps import configs, continual, envs, methods, migrations
 from jcomps.numerics import check_field, check_finite_fields
 from jcomps.runner import grid as grids
 from jcomps.runner.files import RunError
@@ -84,32 +84,6 @@ def canonical_tasks(family: str, tasks) -> tuple[str, ...]:
         raise ValueError(f"tasks: {err}") from None
 
 
-FORMAT = 3
-"""The format of what a run's checkpoints hold beyond its configs, recorded as ``run.json``'s ``format`` (runs
-made before it was recorded are format 1); a resume refuses an older one (``FORMAT_CHANGES`` says why)."""
-FORMAT_CHANGES = {
-    2: "the RL step's per-iteration metrics now hold the critic's explained variance, which its checkpoints lack",
-    3: "the per-task metrics now hold the policy's exploration std, entropy and hidden-unit saturation at each "
-       "task's start and end, which its checkpoints lack",
-}
-
-# Config fields whose addition changed what a method's state holds, so that a run made before them cannot be
-# resumed by this version whatever the options (its checkpoints no longer fit): field path within a method's
-# config -> why.
-UNRESUMABLE_BEFORE = {
-    "meta.value_init": "CoMPS's meta step now keeps one value network per task and starts a new task's from the RL "
-                       "step's critic",
-    "context_source": "PEARL now keeps oyster's encoder buffers and weighs its KL per task",
-    "kb_statistics": "PNC's knowledge base now pools its observation statistics over tasks",
-    "meta.outer_loss": "the meta step now reports the inner step's gain per task slot, which its checkpoints lack",
-}
-
-# The same for evaluation fields, whose addition changed the metrics that checkpoints hold.
-UNRESUMABLE_EVAL_BEFORE = dict.fromkeys(
-    ("learnt_eval", "learnt_episodes"),
-    "its checkpoints lack the evaluations of the learnt tasks behind forgetting and average performance")
-
-
 @dataclasses.dataclass(frozen=True)
 class RunDescription:
     """Everything that defines a run (the module docstring); what ``run.json`` holds."""
@@ -131,7 +105,7 @@ class RunDescription:
     spread differently (it is reported, never resumed)."""
     chunk_tasks_by_method: Optional[Mapping[str, int]] = None
     """A merged study's chunking per method where its sources chunked differently (``experiments/merge_runs.py``)."""
-    format: int = FORMAT
+    format: int = migrations.FORMAT
     """What its checkpoints hold (``FORMAT``)."""
     filled: tuple[str, ...] = dataclasses.field(default=(), compare=False)
     """Fields its ``run.json`` lacked (made by an earlier version), filled with the values the run had."""
@@ -224,11 +198,11 @@ def from_json(data: Mapping, source: str = "run.json") -> RunDescription:
                            "directory") from None
 
     made = data.get("format", 1)
-    if not isinstance(made, int) or made > FORMAT:
-        raise RunError(f"{source}: format {made!r} is not one this version of jcomps reads (up to {FORMAT}); "
-                       "use the version that made it")
-    if made < FORMAT:
-        unresumable.append("; ".join(FORMAT_CHANGES[f] for f in range(made + 1, FORMAT + 1)))
+    if not isinstance(made, int) or made > migrations.FORMAT:
+        raise RunError(f"{source}: format {made!r} is not one this version of jcomps reads (up to "
+                       f"{migrations.FORMAT}); use the version that made it")
+    if made < migrations.FORMAT:
+        unresumable.append("; ".join(migrations.FORMAT_CHANGES[f] for f in range(made + 1, migrations.FORMAT + 1)))
 
     run_data = _section(data, "run", source)
     by_method = run_data.pop("chunk_tasks_by_method", None)
@@ -238,8 +212,9 @@ def from_json(data: Mapping, source: str = "run.json") -> RunDescription:
     eval_data = _section(data, "eval", source)
     for field in _missing_leaves(eval_data, configs.to_json(continual.EvalConfig())):
         filled.append("eval." + field)
-        if field in UNRESUMABLE_EVAL_BEFORE:
-            unresumable.append(f"it was made before eval.{field} existed: {UNRESUMABLE_EVAL_BEFORE[field]}")
+        if field in migrations.UNRESUMABLE_EVAL_BEFORE:
+            why = migrations.UNRESUMABLE_EVAL_BEFORE[field]
+            unresumable.append(f"it was made before eval.{field} existed: {why}")
     eval_config = build("eval", lambda: configs.config_from_dict(continual.EvalConfig(), eval_data))
 
     stored_methods = _section(data, "methods", source)
@@ -252,8 +227,9 @@ def from_json(data: Mapping, source: str = "run.json") -> RunDescription:
         default = methods.default_config(name, run.family)
         for field in _missing_leaves(stored, configs.to_json(default)):
             filled.append(f"methods.{name}.{field}")
-            if field in UNRESUMABLE_BEFORE:
-                unresumable.append(f"it was made before methods.{name}.{field} existed: {UNRESUMABLE_BEFORE[field]}")
+            if field in migrations.UNRESUMABLE_BEFORE:
+                why = migrations.UNRESUMABLE_BEFORE[field]
+                unresumable.append(f"it was made before methods.{name}.{field} existed: {why}")
         method_configs[name] = build(f"methods.{name}",
                                      lambda: methods.resolve_config(name, run.family, stored=stored,
                                                                     default=default))

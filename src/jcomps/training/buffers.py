@@ -324,9 +324,3 @@ def transitions_sample(store: TransitionStore, slot: jax.Array, num: int, rng: j
     rows = {k: getattr(store, k)[slot, idx] for k in ("obs", "action", "reward", "next_obs", "done", "valid")}
     mask = rows.pop("valid") * (held > 0).astype(jnp.float32)
     return rows, mask
-
-
-def transitions_bytes(num_slots: int, capacity: int, obs_size: int, action_size: int) -> int:
-    """Bytes of a ``TransitionStore`` at these sizes."""
-    shapes = jax.eval_shape(lambda: transitions_init(num_slots, capacity, obs_size, action_size))
-    return sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(shapes))
