@@ -700,8 +700,16 @@ def test_bad_num_tasks(name, num_tasks):
 
 
 def test_good_num_tasks_bounds():
-    assert len(envs.sequence_values("point_goal", num_tasks=1)) == 1
-    assert len(envs.sequence_values("point_goal", num_tasks=np.int64(40))) == 40
+    family = envs.make("point_goal")
+    full = np.asarray(family.task_values, np.float32)
+    # num_tasks takes a prefix of the paper's order, at both ends of its range and as a NumPy integer
+    np.testing.assert_array_equal(envs.sequence_values("point_goal", num_tasks=1), full[:1])
+    np.testing.assert_array_equal(envs.sequence_values("point_goal", num_tasks=np.int64(40)), full)
+    np.testing.assert_array_equal(envs.sequence_values("point_goal", num_tasks=7), full[:7])
+    # the stationary sequence is the whole list shuffled by the seed, then the prefix
+    shuffled = envs.sequence_values("point_goal", "stationary", seed=3)
+    assert sorted(shuffled.tolist()) == sorted(full.tolist()) and not np.array_equal(shuffled, full)
+    np.testing.assert_array_equal(envs.sequence_values("point_goal", "stationary", seed=3, num_tasks=5), shuffled[:5])
 
 
 @pytest.mark.parametrize("index", [-1, 40, 1.5, True])

@@ -45,7 +45,12 @@ def run(page, tmp_path_factory):
 
 
 def test_the_page_has_a_family_a_method_a_run_and_a_method_without_ppo():
-    assert len(_blocks()) == 4
+    family, method, run, without_ppo = _blocks()  # exactly four blocks, in this order
+    assert "envs.register(" in family and "methods.register(" not in family
+    assert "methods.register(" in method and "envs.register(" not in method
+    assert "experiment.run(" in run and "register(" not in run
+    # the method without PPO brings its own held-out meta-test and has no PPO config
+    assert "methods.register(" in without_ppo and "adapt=adapt" in without_ppo and "PPOConfig" not in without_ppo
 
 
 def test_a_registered_family_is_found_and_runs_through_the_runner(page, run):

@@ -217,12 +217,27 @@ def test_the_encoder_learns_through_the_critic_loss(family):
     assert max(float(jnp.max(jnp.abs(g))) for g in jax.tree.leaves(g_enc)) > 0  # the encoder does learn
 
 
-def test_policy_for_reads_each_slot_context(tiny):
+def test_policy_for_reads_each_slot_context(family, tiny):
+    """The z of slot j's policy is a draw of the posterior of a context of slot j's data (by hand: the context drawn
+    with the key's first half, q(z | c) by the encoder's product of Gaussians, the draw with its second half), and
+    the task the caller names does not enter it."""
     method, _, _, (s2, _) = tiny
+    p = pearl.setup(family, TINY)
     key = jax.random.PRNGKey(11)
-    z0 = methods.base.policy_for(method, s2, jnp.int32(0), None, key)["z"]
-    z1 = methods.base.policy_for(method, s2, jnp.int32(1), None, key)["z"]
-    assert z0.shape == (TINY.latent_size,) and not np.allclose(z0, z1)
+    k_ctx, k_z = jax.random.split(key)
+    store = pearl.context_store(p, s2)
+    by_hand = []
+    for slot in (0, 1):
+        context, mask = pearl.sample_context(TINY, store, jnp.int32(slot), k_ctx, p.valid_only)
+        assert float(jnp.sum(mask)) > 0  # the slot holds data: its posterior is not the prior
+        mu, var = pearl.posterior(TINY, p.nets, s2.encoder, context, mask)
+        by_hand.append(mu + jnp.sqrt(var) * jax.random.normal(k_z, mu.shape, jnp.float32))
+    for slot in (0, 1):
+        z = methods.base.policy_for(method, s2, jnp.int32(slot), None, key)["z"]
+        np.testing.assert_allclose(z, by_hand[slot], rtol=1e-5, atol=1e-6)
+        z_task = methods.base.policy_for(method, s2, jnp.int32(slot), envs.task_at(family, 1 - slot), key)["z"]
+        np.testing.assert_array_equal(z_task, z)
+    assert not np.allclose(by_hand[0], by_hand[1])  # the two slots' data give two posteriors
 
 
 def test_auto_alpha_follows_the_entropy_and_contexts_without_next_obs(family):
