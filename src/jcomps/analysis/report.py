@@ -95,75 +95,16 @@ def summarize(description: RunDescription, raws: dict, baseline: Optional[str] =
     seeds = run.seed_list
     results = {"description": description.to_json(), "seeds": seeds, "methods": {}}
     entries = description.entries()
-    family = description.family
     overall_its, overall_ret = {}, {}
     # Every method's AUC over one horizon and performance profile over one τ grid: the longest budget of the run.
     horizon = max(raws[name].task.per_iteration.valid.shape[-1] for _, name, _ in entries)
     taus = statistics.profile_taus(horizon)
     for method, name, values in entries:
-        raw = raws[name]
-        its = raw.task.iterations
-        valid = raw.task.per_iteration.valid
-        ret, succ = raw.task.per_iteration.mean_return, raw.task.per_iteration.success_rate
-        per_task_return = statistics.per_task_mean(ret, valid)
-        mean, se = mean_se(its)
-        bt = statistics.backward_transfer(ret, valid, raw.backward_returns, raw.backward_valid)
-        h_ret = raw.heldout.mean_return.mean(axis=2)  # [seeds, points, iterations + 1], averaged over tasks
-        steps, task_steps, before_steps = env_steps(description, method, values)
-        # Samples-to-success per seed and task: MAML+TL's iterations collect two batches, PPO's one; PNC's solved
-        # tasks add their compress phase (an unsolved task's budget count includes it already); PEARL's every task
-        # its initial prior-z collection.
-        samples = its * steps + raw.task.solved * task_steps + before_steps
-        samples_mean, samples_se = mean_se(samples)
-        entry = results["methods"][name] = {
-            "iterations_to_success": its.astype(int).tolist(),
-            "iterations_to_success_mean": mean.round(3).tolist(),
-            "iterations_to_success_se": se.round(3).tolist(),
-            "env_steps_per_iteration": int(steps),
-            "env_steps_per_task": int(task_steps),
-            "env_steps_before_task": int(before_steps),
-            "env_steps_to_success": samples.astype(np.int64).tolist(),
-            "env_steps_to_success_mean": samples_mean.round(1).tolist(),
-            "env_steps_to_success_se": samples_se.round(1).tolist(),
-            "solved": raw.task.solved.astype(bool).tolist(),
-            "mean_return_per_task": per_task_return.round(6).tolist(),
-            "return_curves": _curves(ret, valid),
-            "success_rate_curves": _curves(succ, valid),
-            "backward_transfer": [[_json_float(v) for v in row] for row in bt],
-            "heldout": {
-                "after_tasks": raw.heldout_after_tasks.tolist(),
-                "zero_shot_return": h_ret[:, :, 0].round(6).tolist(),
-                "adapted_return": h_ret[:, :, -1].round(6).tolist(),
-                "adaptation_iterations": int(h_ret.shape[-1] - 1),
-                # [seeds, points, held-out tasks]; the budget is the cap (never reached within it)
-                "iterations_to_success": raw.heldout.iterations.astype(int).tolist(),
-                "iterations_to_success_mean": raw.heldout.iterations.mean(axis=2).round(3).tolist(),
-                "solved": raw.heldout.solved.astype(bool).tolist(),
-                "budget": int(description.eval.heldout_budget or 0),
-            },
-            "iqm": [{"tasks": list(r), **statistics.iqm_ci(its[:, r[0] - 1:r[1]])}
-                    for r in statistics.sequence_halves(its.shape[1])],
-            "nonfinite_iterations": int(np.sum(raw.task.per_iteration.nonfinite > 0)),
-            "seconds": float(raw.seconds),
-            "devices": int(raw.devices),
-        }
-        entry["critic"] = critic_summary(raw.task.per_iteration)
-        if raw.task.meta is not None:
-            entry["meta"] = meta_summary(raw.task.meta)
-        if raw.task.policy_health is not None:
-            entry["policy"] = policy_summary(raw.task.policy_health)
-        entry.update(learnt_summary(raw))
-        entry["performance_profile"] = {"statistic": "fraction of runs (seeds × tasks) that reached the threshold "
-                                                     "within tau iterations; 95% stratified-bootstrap band",
-                                        **cm.performance_profile_ci(its, raw.task.solved, taus)}
+        results["methods"][name] = _entry(description, method, values, raws[name], taus)
         if values is not None:
-            seed_means = its.astype(np.float64).mean(axis=1)
-            m_its, se_its = mean_se(seed_means)
-            overall_its[name], overall_ret[name] = float(its.mean()), float(per_task_return.mean())
-            entry.update({"method": method, "grid": {k: _jsonable_value(v) for k, v in values.items()},
-                          "overall": {"iterations_to_success_mean": _json_float(m_its),
-                                      "iterations_to_success_se": _json_float(se_its),
-                                      "mean_return": _json_float(overall_ret[name])}})
+            per_iteration = raws[name].task.per_iteration
+            overall_its[name] = float(raws[name].task.iterations.mean())
+            overall_ret[name] = float(statistics.per_task_mean(per_iteration.mean_return, per_iteration.valid).mean())
     best = {m: m for m in run.methods}
     if description.grid:
         best = grids.best(entries, overall_its, overall_ret)
@@ -174,22 +115,99 @@ def summarize(description: RunDescription, raws: dict, baseline: Optional[str] =
     except ValueError as err:
         raise RunError(str(err)) from None
     if baseline is not None:
-        base = raws[best[baseline]].task.iterations.mean(axis=1)
-        results["significance"] = {
-            "baseline": best[baseline],
-            "statistic": "per-seed mean iterations-to-success over the sequence"
-                         + (", each method at its best grid point" if description.grid else ""),
-            "against": {best[m]: statistics.significance(base, raws[best[m]].task.iterations.mean(axis=1))
-                        for m in run.methods if m != baseline}}
-        results["significance"]["probability_of_improvement"] = {
-            best[m]: probability_of_improvement(raws[best[m]], raws[best[baseline]], best[baseline])
-            for m in run.methods if m != baseline}
+        results["significance"] = _significance(raws, best, baseline, run.methods, bool(description.grid))
     reference = best.get(FT_REFERENCE)
-    ids = np.stack([envs.sequence_values(family, run.sequence, s, run.num_tasks, run.tasks) for s in seeds])
+    ids = np.stack([envs.sequence_values(description.family, run.sequence, s, run.num_tasks, run.tasks)
+                    for s in seeds])
     for _, name, _ in entries:
         results["methods"][name]["forward_transfer"] = forward_transfer_summary(
             raws[name], None if reference is None else raws[reference], reference, ids, horizon)
     return results
+
+
+def _entry(description: RunDescription, method: str, values, raw, taus) -> dict:
+    """``results.json``'s summary of one entry (a method, or one grid point of it: ``values``) from its raw
+    results; the forward transfer is added by ``summarize``, which needs every entry."""
+    its = raw.task.iterations
+    valid = raw.task.per_iteration.valid
+    ret, succ = raw.task.per_iteration.mean_return, raw.task.per_iteration.success_rate
+    per_task_return = statistics.per_task_mean(ret, valid)
+    mean, se = mean_se(its)
+    bt = statistics.backward_transfer(ret, valid, raw.backward_returns, raw.backward_valid)
+    steps, task_steps, before_steps = env_steps(description, method, values)
+    # Samples-to-success per seed and task: MAML+TL's iterations collect two batches, PPO's one; PNC's solved
+    # tasks add their compress phase (an unsolved task's budget count includes it already); PEARL's every task
+    # its initial prior-z collection.
+    samples = its * steps + raw.task.solved * task_steps + before_steps
+    samples_mean, samples_se = mean_se(samples)
+    entry = {
+        "iterations_to_success": its.astype(int).tolist(),
+        "iterations_to_success_mean": mean.round(3).tolist(),
+        "iterations_to_success_se": se.round(3).tolist(),
+        "env_steps_per_iteration": int(steps),
+        "env_steps_per_task": int(task_steps),
+        "env_steps_before_task": int(before_steps),
+        "env_steps_to_success": samples.astype(np.int64).tolist(),
+        "env_steps_to_success_mean": samples_mean.round(1).tolist(),
+        "env_steps_to_success_se": samples_se.round(1).tolist(),
+        "solved": raw.task.solved.astype(bool).tolist(),
+        "mean_return_per_task": per_task_return.round(6).tolist(),
+        "return_curves": _curves(ret, valid),
+        "success_rate_curves": _curves(succ, valid),
+        "backward_transfer": [[_json_float(v) for v in row] for row in bt],
+        "heldout": _heldout_summary(description, raw),
+        "iqm": [{"tasks": list(r), **statistics.iqm_ci(its[:, r[0] - 1:r[1]])}
+                for r in statistics.sequence_halves(its.shape[1])],
+        "nonfinite_iterations": int(np.sum(raw.task.per_iteration.nonfinite > 0)),
+        "seconds": float(raw.seconds),
+        "devices": int(raw.devices),
+    }
+    entry["critic"] = critic_summary(raw.task.per_iteration)
+    if raw.task.meta is not None:
+        entry["meta"] = meta_summary(raw.task.meta)
+    if raw.task.policy_health is not None:
+        entry["policy"] = policy_summary(raw.task.policy_health)
+    entry.update(learnt_summary(raw))
+    entry["performance_profile"] = {"statistic": "fraction of runs (seeds × tasks) that reached the threshold "
+                                                 "within tau iterations; 95% stratified-bootstrap band",
+                                    **cm.performance_profile_ci(its, raw.task.solved, taus)}
+    if values is not None:
+        m_its, se_its = mean_se(its.astype(np.float64).mean(axis=1))
+        entry.update({"method": method, "grid": {k: _jsonable_value(v) for k, v in values.items()},
+                      "overall": {"iterations_to_success_mean": _json_float(m_its),
+                                  "iterations_to_success_se": _json_float(se_its),
+                                  "mean_return": _json_float(float(per_task_return.mean()))}})
+    return entry
+
+
+def _heldout_summary(description: RunDescription, raw) -> dict:
+    """The held-out meta-test of one entry: zero-shot and adapted returns, iterations to success."""
+    h_ret = raw.heldout.mean_return.mean(axis=2)  # [seeds, points, iterations + 1], averaged over tasks
+    return {
+        "after_tasks": raw.heldout_after_tasks.tolist(),
+        "zero_shot_return": h_ret[:, :, 0].round(6).tolist(),
+        "adapted_return": h_ret[:, :, -1].round(6).tolist(),
+        "adaptation_iterations": int(h_ret.shape[-1] - 1),
+        # [seeds, points, held-out tasks]; the budget is the cap (never reached within it)
+        "iterations_to_success": raw.heldout.iterations.astype(int).tolist(),
+        "iterations_to_success_mean": raw.heldout.iterations.mean(axis=2).round(3).tolist(),
+        "solved": raw.heldout.solved.astype(bool).tolist(),
+        "budget": int(description.eval.heldout_budget or 0),
+    }
+
+
+def _significance(raws: dict, best: dict, baseline: str, method_names, grid: bool) -> dict:
+    """The significance table: ``baseline`` against every other method, each at its best grid point."""
+    base = raws[best[baseline]].task.iterations.mean(axis=1)
+    others = [m for m in method_names if m != baseline]
+    return {
+        "baseline": best[baseline],
+        "statistic": "per-seed mean iterations-to-success over the sequence"
+                     + (", each method at its best grid point" if grid else ""),
+        "against": {best[m]: statistics.significance(base, raws[best[m]].task.iterations.mean(axis=1))
+                    for m in others},
+        "probability_of_improvement": {best[m]: probability_of_improvement(raws[best[m]], raws[best[baseline]],
+                                                                          best[baseline]) for m in others}}
 
 
 def _rows(x, digits: int = 6):
