@@ -31,17 +31,17 @@ eval_config = continual.EvalConfig(backward_tasks=0, heldout_iterations=0)
 devices = num_devices(a["seeds"])
 program = Programs().get(a["method"], a["family"], config, eval_config, a["tasks"], devices)
 seeds = list(range(a["seeds"]))
-seqs = program.put(task_sequences(family, "non-stationary", seeds, a["tasks"]))
-keys = program.put(jax.vmap(jax.random.PRNGKey)(jnp.asarray(seeds)))
-idx = program.put(np.arange(len(seeds), dtype=np.int32))
+keys = jax.vmap(jax.random.PRNGKey)(jnp.asarray(seeds))
+bound = program.bind(task_sequences(family, "non-stationary", seeds, a["tasks"]),
+                     np.arange(len(seeds), dtype=np.int32), keys, {}, jax.device_get(envs.held_out(family)))
 states = program.init(keys)
 t0 = time.perf_counter()
-jax.block_until_ready(program.learn_chunk(states, seqs, 0, program.chunk, keys, idx))
+jax.block_until_ready(bound.learn_chunk(states, 0, program.chunk))
 compile_s = time.perf_counter() - t0
 times, steps = [], 0
 for _ in range(a["repeats"]):
     t0 = time.perf_counter()
-    _, m = jax.block_until_ready(program.learn_chunk(states, seqs, 0, program.chunk, keys, idx))
+    _, m = jax.block_until_ready(bound.learn_chunk(states, 0, program.chunk))
     times.append(time.perf_counter() - t0)
     steps = int(np.sum(np.asarray(m.task.iterations))) * config.ppo.num_trajectories * family.max_steps
 print(json.dumps({"devices": devices, "steps": steps, "seconds": min(times), "first_call_s": compile_s}))

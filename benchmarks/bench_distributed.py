@@ -61,14 +61,13 @@ def child(argv):
     devices = num_devices(a["seeds"])
     program = Programs().get(a["method"], a["family"], config, eval_config, a["tasks"], devices)
     seeds = list(range(a["seeds"]))
-    seqs = program.put(task_sequences(family, "non-stationary", seeds, a["tasks"]))
     host_keys = jax.vmap(jax.random.PRNGKey)(jnp.asarray(seeds))  # init takes them whole, on every process
-    keys = program.put(host_keys)
-    idx = program.put(np.arange(len(seeds), dtype=np.int32))
+    bound = program.bind(task_sequences(family, "non-stationary", seeds, a["tasks"]),
+                         np.arange(len(seeds), dtype=np.int32), host_keys, {}, jax.device_get(envs.held_out(family)))
     states = program.init(host_keys)
 
     def chunk():
-        _, metrics = program.learn_chunk(states, seqs, 0, program.chunk, keys, idx)
+        _, metrics = bound.learn_chunk(states, 0, program.chunk)
         return distributed.gather(metrics)  # on every process, as the runner's host loop needs them
 
     t0 = time.perf_counter()

@@ -65,14 +65,15 @@ def main():
         program = Programs().get(args.method, args.family, spec.config, eval_config, args.tasks, devices,
                                  spec.traced)
         values = np.stack([envs.sequence_values(family, "non-stationary", s, args.tasks) for s in member_seed])
-        seqs = program.put(jax.tree.map(lambda x: x.reshape((len(member_seed), args.tasks) + x.shape[1:]),
-                                        family.tasks(values.reshape(-1))))
+        seqs = jax.tree.map(lambda x: x.reshape((len(member_seed), args.tasks) + x.shape[1:]),
+                            family.tasks(values.reshape(-1)))
         keys = jax.vmap(jax.random.PRNGKey)(jnp.asarray(member_seed))
-        idx = program.put(np.arange(len(member_seed), dtype=np.int32))
+        bound = program.bind(seqs, np.arange(len(member_seed), dtype=np.int32), keys, hparams,
+                             jax.device_get(envs.held_out(family)))
         states = program.init(keys, hparams)
-        inputs = (states, seqs, 0, program.chunk, program.put(keys), idx, program.put(hparams))
+        inputs = (bound, states)
         t0 = time.perf_counter()
-        jax.block_until_ready(program.learn_chunk(*inputs))
+        jax.block_until_ready(bound.learn_chunk(states, 0, program.chunk))
         prepared[case] = (spec, seeds, real, devices, program, inputs, time.perf_counter() - t0)
     # The cases take turns, so that a drift of the machine's speed touches both alike.
     times = {case: [] for case in prepared}
@@ -80,7 +81,8 @@ def main():
     for _ in range(args.repeats):
         for case, (_, _, _, _, program, inputs, _) in prepared.items():
             t0 = time.perf_counter()
-            _, metrics[case] = jax.block_until_ready(program.learn_chunk(*inputs))
+            bound, states = inputs
+            _, metrics[case] = jax.block_until_ready(bound.learn_chunk(states, 0, program.chunk))
             times[case].append(time.perf_counter() - t0)
     rates = {}
     for case, (spec, seeds, real, devices, _, _, first_call) in prepared.items():

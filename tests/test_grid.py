@@ -156,10 +156,15 @@ def test_every_traced_field_traces(name):
     seq = abstract(jax.tree.map(lambda x: x[None], envs.sequence(family, num_tasks=2)))
     keys = abstract(jax.random.PRNGKey(0)[None])
     index = abstract(jnp.zeros(1, jnp.int32))
-    metrics = jax.eval_shape(lambda *a: program.learn_chunk(a[0], a[1], 0, 1, *a[2:]), states, seq, keys, index,
+    heldout = envs.held_out(family)
+
+    def bound(seq, keys, index, hparams):  # the run's inputs as a run binds them (here abstract)
+        return programs.BoundProgram(program, programs.ProgramInput(seq, index, keys, hparams, heldout))
+
+    metrics = jax.eval_shape(lambda s, q, k, i, h: bound(q, k, i, h).learn_chunk(s, 0, 1), states, seq, keys, index,
                              hparams)[1]
     assert metrics.task.iterations.shape == (1, 1)
-    measured = jax.eval_shape(program.measure, states, envs.held_out(family), keys, seq, jnp.int32(1), keys, index,
+    measured = jax.eval_shape(lambda s, q, k, i, h: bound(q, k, i, h).measure(s, k, 1), states, seq, keys, index,
                               hparams)
     assert measured.heldout.iterations.shape[0] == 1 and jax.tree.leaves(measured.learnt)[0].shape[:2] == (1, 2)
     # The runner sizes its host copies from continual's shapes without tracing these programs: they must agree.
@@ -167,7 +172,8 @@ def test_every_traced_field_traces(name):
     member = lambda tree: jax.tree.map(lambda x: (1,) + x.shape + (x.dtype,), tree)  # noqa: E731
     expected = continual.heldout_shapes(eval_config, len(family.held_out_values), 2)
     assert member(expected) == jax.tree.map(lambda x: x.shape + (x.dtype,), measured)
-    evaluation = jax.eval_shape(program.evaluate_task, states, seq, jnp.int32(0), keys, hparams)
+    evaluation = jax.eval_shape(lambda s, q, k, i, h: bound(q, k, i, h).evaluate_task(s, 0), states, seq, keys, index,
+                                hparams)
     assert member(continual.task_evaluation_shapes(eval_config)) == jax.tree.map(lambda x: x.shape + (x.dtype,),
                                                                                   evaluation)
 

@@ -147,14 +147,14 @@ def run_program(out: str, spec: grids.ProgramSpec, description: RunDescription, 
     """
     job = _ProgramRun(out, spec, description, progress_fn, Programs() if programs is None else programs)
     states = job.open(resume)
-    job.program.receiver = job.receive
+    job.method_program.receiver = job.receive
     try:
         for chunks_run, c in enumerate(range(job.next_chunk, job.num_chunks), 1):
             states = job.run_chunk(states, c)
             if stop_after_chunks is not None and chunks_run >= stop_after_chunks and c + 1 < job.num_chunks:
                 return None
     finally:
-        job.program.receiver = None
+        job.method_program.receiver = None
     return job.finish()
 
 
@@ -166,39 +166,31 @@ def to_host(tree):
 
 
 class _ProgramRun:
-    """One program's run (``run_program``): what stays fixed while it runs (its members, compiled programs, the
-    task sequences and keys on the devices), the host copies of its metrics, its checkpoints and its events.
-
-    ``per_task``: ChunkMetrics [members, num_tasks, ...], filled task by task; ``heldout``: the
-    ``continual.Measurement`` [members, num_chunks + 1, ...], measured at the start and after every chunk.
-    """
+    """One program's run (``run_program``): the loop over its chunks, with what stays fixed while it runs (its
+    members, its compiled programs bound to their inputs), the host copies of its metrics (``metrics``, a
+    ``_HostMetrics`` made once the learning program is compiled), its checkpoints and its events."""
 
     def __init__(self, out: str, spec: grids.ProgramSpec, description: RunDescription, progress_fn: ProgressReceiver,
                  programs: Programs):
         run = description.run
         self.out, self.spec, self.run, self.progress_fn = out, spec, run, progress_fn
-        self.family = description.family
-        self.eval_config = description.eval
-        self.points = spec.points
+        self.family, self.eval_config, self.points = description.family, description.eval, spec.points
         real = len(self.points) * run.seeds
         self.devices = num_devices(real)
         self.member_point, self.member_seed, self.hparams_host = layout(spec, run.seeds, run.seed, self.devices)
         self.padding = len(self.member_seed) - real
-        self.program = programs.get(spec.method, run.family, spec.config, self.eval_config,
-                                    min(run.chunk_tasks, run.num_tasks), self.devices, spec.traced)
-        self.hparams = self.program.put(self.hparams_host)
+        self.method_program = programs.get(spec.method, run.family, spec.config, self.eval_config,
+                                           min(run.chunk_tasks, run.num_tasks), self.devices, spec.traced)
+        self.program = self.method_program.bind(
+            task_sequences(self.family, run.sequence, self.member_seed, run.num_tasks, run.tasks),
+            np.arange(len(self.member_seed), dtype=np.int32), task_eval_keys(self.member_seed), self.hparams_host,
+            jax.device_get(envs.held_out(self.family)))  # host arrays: the same on every process
+        self.chunk = self.method_program.chunk
         self.name = self.points[0].key if len(self.points) == 1 else f"{spec.label}, {len(self.points)} grid points"
-        self.sequences = self.program.put(task_sequences(self.family, run.sequence, self.member_seed,
-                                                         run.num_tasks, run.tasks))
-        self.heldout_tasks = jax.device_get(envs.held_out(self.family))  # host arrays: the same on every process
-        self.seed_index = self.program.put(np.arange(len(self.member_seed), dtype=np.int32))
-        self.backward_keys = self.program.put(task_eval_keys(self.member_seed))
         self.init_keys = method_keys(self.member_seed)
-        self.num_chunks = math.ceil(run.num_tasks / self.program.chunk)
-        # The reported members of each point (padding members are dropped), and the tasks learnt at each
-        # measurement of ``heldout``.
-        self.slices = [(slice(p * run.seeds, (p + 1) * run.seeds),) for p in range(len(self.points))]
-        self.after_tasks = np.asarray([min(c * self.program.chunk, run.num_tasks) for c in range(self.num_chunks + 1)],
+        self.num_chunks = math.ceil(run.num_tasks / self.chunk)
+        # The tasks learnt at each measurement (``_HostMetrics.heldout``).
+        self.after_tasks = np.asarray([min(c * self.chunk, run.num_tasks) for c in range(self.num_chunks + 1)],
                                       np.int64)
         self.checkpoints = Checkpoints(os.path.join(out, "checkpoints", spec.directory))
         self.next_chunk, self.seconds, self.started = 0, 0.0, time.time()
@@ -211,71 +203,53 @@ class _ProgramRun:
         """The compiled programs' progress (``jcomps.progress``), as events of its phase's kind."""
         self.emit(metrics["phase"], **{k: v.item() for k, v in metrics.items() if k != "phase"})
 
-    def compile(self, part: str, *args):
-        """Compiles ``part`` of the program for ``args`` unless done, saying so (``COMPILING``, ``STILL_COMPILING``
-        while it takes, ``COMPILED``)."""
-        if part in self.program.compiled:
+    def ensure_compiled(self, part: str, states):
+        """Compiles ``part`` of the program for ``states`` and the run's inputs unless done, saying so
+        (``COMPILING``, ``STILL_COMPILING`` while it takes, ``COMPILED``)."""
+        if part in self.method_program.compiled:
             return
         where = {"family": self.run.family, "method": self.spec.method, "part": part, "what": PART_NAMES[part]}
         self.emit(COMPILING, **where)
-        times = self.program.compile(part, *args, waiting=lambda seconds: self.emit(STILL_COMPILING, **where,
-                                                                                   seconds=seconds))
+        times = self.method_program.compile(part, *self.program.arguments(part, states),
+                                            waiting=lambda seconds: self.emit(STILL_COMPILING, **where,
+                                                                              seconds=seconds))
         self.emit(COMPILED, **where, **times._asdict())
-
-    def compile_measure(self, states):
-        """The held-out program, compiled for arguments shaped as ``evaluate`` gives them (a no-op once done)."""
-        self.compile("measure", states, self.heldout_tasks, self.backward_keys, self.sequences, np.int32(0),
-                     self.backward_keys, self.seed_index, self.hparams)
 
     def open(self, resume: bool):
         """The members' states to continue from: the initial ones (the learning program compiled for them), or
         with ``resume`` those of the newest readable checkpoint, with the metrics so far and ``next_chunk``."""
         run = self.run
         self.emit(START, family=run.family, sequence=run.sequence, num_tasks=run.num_tasks, tasks=list(run.tasks),
-                  seeds=run.seeds,
-                  grid_points=len(self.points), padding=self.padding, devices=self.devices,
-                  budget=methods.collection(self.spec.config).budget_for(self.family), chunk=self.program.chunk,
-                  start_task=0, members=[f"{self.points[p].key} seed {s}"
-                                         for p, s in zip(self.member_point, self.member_seed)])
-        states = self.program.init(self.init_keys, self.hparams_host)
+                  seeds=run.seeds, grid_points=len(self.points), padding=self.padding, devices=self.devices,
+                  budget=methods.collection(self.spec.config).budget_for(self.family), chunk=self.chunk, start_task=0,
+                  members=[f"{self.points[p].key} seed {s}" for p, s in zip(self.member_point, self.member_seed)])
+        states = self.method_program.init(self.init_keys, self.hparams_host)
         # The learning program is the one a run waits for: it compiles first, alone.
-        self.compile("learn", states, self.sequences, np.int32(0), self.seed_index, self.hparams)
-        self._allocate_metrics()
+        self.ensure_compiled("learn", states)
+        num_heldout = jax.tree.leaves(self.program.inputs.heldout_tasks)[0].shape[0]
+        self.metrics = _HostMetrics(self.method_program.compiled["learn"].out_info[1], self.eval_config,
+                                    len(self.member_seed), num_heldout, self.after_tasks, self.points, run.seeds)
         if resume:
             states = self._restore(states)
         # A run stopped by older code has no partial results yet.
         if 0 < self.next_chunk < self.num_chunks and distributed.is_writer():
-            for key, raw in self.entry_raws(self.next_chunk).items():
+            for key, raw in self.metrics.raws(self.next_chunk, self.seconds, self.devices).items():
                 results.save_partial(self.out, key, raw)
         self.started = time.time()
         return states
 
-    def _allocate_metrics(self):
-        """Zeroed host copies of every metric of the sequence (``per_task``, ``heldout``)."""
-        member = lambda shapes: jax.tree.map(  # noqa: E731
-            lambda x: jax.ShapeDtypeStruct((len(self.member_seed),) + x.shape, x.dtype), shapes)
-        task_shapes = self.program.compiled["learn"].out_info[1]
-        chunk_shapes = continual.chunk_metrics(task_shapes,
-                                               member(continual.task_evaluation_shapes(self.eval_config)))
-        num_heldout = jax.tree.leaves(self.heldout_tasks)[0].shape[0]
-        heldout_shapes = member(continual.heldout_shapes(self.eval_config, num_heldout, self.run.num_tasks))
-        self.per_task = jax.tree.map(lambda x: np.zeros((x.shape[0], self.run.num_tasks) + x.shape[1:], x.dtype),
-                                     chunk_shapes)
-        self.heldout = jax.tree.map(lambda x: np.zeros((x.shape[0], self.num_chunks + 1) + x.shape[1:], x.dtype),
-                                    heldout_shapes)
-
     def _restore(self, states):
         """The states of the newest readable checkpoint (``states`` when there is none), its metrics restored."""
         warn = lambda message: self.progress_fn({"event": WARNING, "message": message})  # noqa: E731
-        restored = self.checkpoints.restore_latest(record(states, self.per_task, self.heldout, 0, 0.0), warn)
+        m = self.metrics
+        restored = self.checkpoints.restore_latest(record(states, m.per_task, m.heldout, 0, 0.0), warn)
         if restored is None:
             return states
         step, tree = restored
-        states = self.program.put(unflatten(states, tree["states"]))
-        self.per_task = unflatten(self.per_task, tree["per_task"])
-        self.heldout = unflatten(self.heldout, tree["heldout"])
+        states = self.method_program.put(unflatten(states, tree["states"]))
+        m.per_task, m.heldout = unflatten(m.per_task, tree["per_task"]), unflatten(m.heldout, tree["heldout"])
         self.next_chunk, self.seconds = int(tree["counters"]["next_chunk"]), float(tree["counters"]["seconds"])
-        self.emit(RESUMED, step=step, tasks_done=min(self.next_chunk * self.program.chunk, self.run.num_tasks),
+        self.emit(RESUMED, step=step, tasks_done=min(self.next_chunk * self.chunk, self.run.num_tasks),
                   num_tasks=self.run.num_tasks)
         return states
 
@@ -284,44 +258,40 @@ class _ProgramRun:
         return self.seconds + time.time() - self.started
 
     def run_chunk(self, states, c: int):
-        """Learns chunk ``c``, evaluates it, checkpoints and reports it; returns the states after it."""
-        start = c * self.program.chunk
-        stop = min(start + self.program.chunk, self.run.num_tasks)
-        states, metrics = self.learn_chunk(states, start, stop)
-        jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), slice(start, stop)), src), self.per_task, metrics)
+        """Learns chunk ``c``, evaluates it, checkpoints and reports it; returns the states after it. Each task is
+        evaluated right after it is learnt; the evaluation programs compile while the first task trains."""
+        start = c * self.chunk
+        stop = min(start + self.chunk, self.run.num_tasks)
+
+        def compile_evaluations(states):  # dispatched without waiting: these compile while the task trains
+            self.ensure_compiled("evaluate_task", states)
+            self.ensure_compiled("measure", states)
+
+        states, metrics = self.program.learn_chunk(states, start, stop, after_learn=compile_evaluations)
+        metrics = to_host(metrics)
+        jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), slice(start, stop)), src), self.metrics.per_task,
+                     metrics)
         if c == 0:
             # The held-out meta-test of the initial policies (0 tasks learnt): the same states and keys as
             # before training, measured after the first chunk, off the path to the first iteration.
-            initial = self.program.init(self.init_keys, self.hparams_host)
+            initial = self.method_program.init(self.init_keys, self.hparams_host)
             self.evaluate(initial, 0, 0, heldout_keys(self.member_seed, 0), 0)
         # The learnt tasks after every chunk, or (learnt_eval=end) after the last one only.
         learnt = stop if self.eval_config.learnt_eval == "chunk" or stop == self.run.num_tasks else 0
         learnt_now = self.evaluate(states, c + 1, learnt, heldout_keys(self.member_seed, c + 1), stop).learnt
         self.save(states, c + 1)
-        self.report_chunk(start, stop, metrics, learnt_now)
+        for key, fields in self.metrics.chunk_events(start, stop, metrics, learnt_now, self.run.seed):
+            self.emit(CHUNK, entry=key, **fields)
         return states
-
-    def learn_chunk(self, states, start: int, stop: int):
-        """(states, ChunkMetrics [members, stop - start] on the host) after learning the tasks at positions
-        ``start``..``stop - 1`` in turn (``MethodProgram.learn_chunk``), each evaluated right after it is learnt;
-        the evaluation programs compile while the first task trains."""
-        def compile_evaluations(states):  # dispatched without waiting: these compile while the task trains
-            self.compile("evaluate_task", states, self.sequences, np.int32(start), self.backward_keys, self.hparams)
-            self.compile_measure(states)
-
-        states, metrics = self.program.learn_chunk(states, self.sequences, start, stop, self.backward_keys,
-                                                   self.seed_index, self.hparams, after_learn=compile_evaluations)
-        return states, to_host(metrics)
 
     def evaluate(self, states, column: int, learnt: int, keys, after: int):
         """The evaluations of ``states`` (``learnt``: the tasks to evaluate) into column ``column`` of ``heldout``
         (``after``: the tasks learnt, for the progress lines); returns them on the host."""
-        self.compile_measure(states)
+        self.ensure_compiled("measure", states)
         self.emit(EVALUATING, after_tasks=after, learnt=learnt, adapts=self.eval_config.heldout_measured)
         began = time.time()
-        out = to_host(self.program.measure(states, self.heldout_tasks, self.program.put(keys), self.sequences,
-                                           np.int32(learnt), self.backward_keys, self.seed_index, self.hparams))
-        jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), column), src), self.heldout, out)
+        out = to_host(self.program.measure(states, keys, learnt))
+        jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), column), src), self.metrics.heldout, out)
         self.emit(EVALUATED, after_tasks=after, seconds=time.time() - began)
         return out
 
@@ -329,44 +299,70 @@ class _ProgramRun:
         """Checkpoints the run after ``chunks_done`` chunks, and the partial results of an unfinished one (what
         ``report.py --partial`` shows)."""
         elapsed = self.elapsed()
-        self.checkpoints.save(chunks_done, record(states, self.per_task, self.heldout, chunks_done, elapsed))
+        self.checkpoints.save(chunks_done, record(states, self.metrics.per_task, self.metrics.heldout, chunks_done,
+                                                  elapsed))
         if chunks_done < self.num_chunks and distributed.is_writer():
-            for key, raw in self.entry_raws(chunks_done, elapsed).items():
+            for key, raw in self.metrics.raws(chunks_done, elapsed, self.devices).items():
                 results.save_partial(self.out, key, raw)
-
-    def report_chunk(self, start: int, stop: int, metrics, learnt_now):
-        """The ``CHUNK`` event of every results entry (``metrics``: the chunk's ChunkMetrics, ``learnt_now``: the
-        learnt tasks' Evaluation after it, both [members, ...])."""
-        seeds = list(range(self.run.seed, self.run.seed + self.run.seeds))
-        for p, point in enumerate(self.points):
-            mine = self.slices[p]
-            self.emit(CHUNK, entry=point.key, start=start, stop=stop, num_tasks=self.run.num_tasks, seeds=seeds,
-                      metrics=jax.tree.map(lambda x: np.asarray(x)[mine], metrics),
-                      per_task=jax.tree.map(lambda x: x[mine], self.per_task),
-                      learnt_tasks=jax.tree.map(lambda x: np.asarray(x)[mine], learnt_now))
-
-    def entry_raws(self, chunks_done: int, seconds: Optional[float] = None) -> dict:
-        """{entry key: RawResults} of the tasks of the first ``chunks_done`` chunks (``seconds``: the time they
-        took, default the time recorded so far)."""
-        upto, measured = int(self.after_tasks[chunks_done]), chunks_done + 1
-        seconds = self.seconds if seconds is None else seconds
-        raws = {}
-        for p, point in enumerate(self.points):
-            mine = self.slices[p]
-            task = jax.tree.map(lambda x: np.asarray(x[mine][:, :upto]), self.per_task)
-            held = jax.tree.map(lambda x: np.asarray(x[mine][:, :measured]), self.heldout.heldout)
-            learnt = jax.tree.map(lambda x: np.asarray(x[mine][:, :measured, :upto]), self.heldout.learnt)
-            raws[point.key] = results.RawResults(task.task, task.backward_returns, task.backward_valid, held,
-                                                 self.after_tasks[:measured], float(seconds), int(self.devices),
-                                                 task.backward_success, task.learnt, learnt)
-        return raws
 
     def finish(self) -> dict:
         """Writes every entry's results once the sequence is done; returns them ({entry key: RawResults})."""
         total = self.elapsed()
-        raws = self.entry_raws(self.num_chunks, total)
+        raws = self.metrics.raws(self.num_chunks, total, self.devices)
         if distributed.is_writer():
             for key, raw in raws.items():
                 results.save(self.out, key, raw)
         self.emit(DONE, seconds=total)
+        return raws
+
+
+class _HostMetrics:
+    """The host copies of one program's metrics over the sequence, zeroed at first and filled as it runs:
+    ``per_task``, ChunkMetrics [members, num_tasks, ...], task by task; ``heldout``, the ``continual.Measurement``
+    [members, num_chunks + 1, ...], at the start and after every chunk (``after_tasks``: the tasks learnt at each
+    measurement); and the results entries they make (``points``, each ``seeds`` members; padding members are
+    dropped)."""
+
+    def __init__(self, task_shapes, eval_config: continual.EvalConfig, members: int, num_heldout: int,
+                 after_tasks: np.ndarray, points, seeds: int):
+        num_tasks, measurements = int(after_tasks[-1]), len(after_tasks)
+        member = lambda shapes: jax.tree.map(  # noqa: E731
+            lambda x: jax.ShapeDtypeStruct((members,) + x.shape, x.dtype), shapes)
+        chunk_shapes = continual.chunk_metrics(task_shapes, member(continual.task_evaluation_shapes(eval_config)))
+        heldout_shapes = member(continual.heldout_shapes(eval_config, num_heldout, num_tasks))
+        self.per_task = jax.tree.map(lambda x: np.zeros((x.shape[0], num_tasks) + x.shape[1:], x.dtype),
+                                     chunk_shapes)
+        self.heldout = jax.tree.map(lambda x: np.zeros((x.shape[0], measurements) + x.shape[1:], x.dtype),
+                                    heldout_shapes)
+        self.after_tasks = after_tasks
+        self.slices = {point.key: (slice(p * seeds, (p + 1) * seeds),) for p, point in enumerate(points)}
+
+    def entries(self):
+        """(entry key, the index of its members) of every results entry."""
+        return self.slices.items()
+
+    def chunk_events(self, start: int, stop: int, metrics, learnt_now, first_seed: int) -> list:
+        """(entry key, fields) of the ``CHUNK`` event of every results entry (``metrics``: the chunk's ChunkMetrics,
+        ``learnt_now``: the learnt tasks' Evaluation after it, both [members, ...])."""
+        num_tasks = int(self.after_tasks[-1])
+        out = []
+        for key, mine in self.entries():
+            seeds = list(range(first_seed, first_seed + mine[0].stop - mine[0].start))
+            out.append((key, dict(start=start, stop=stop, num_tasks=num_tasks, seeds=seeds,
+                                  metrics=jax.tree.map(lambda x: np.asarray(x)[mine], metrics),
+                                  per_task=jax.tree.map(lambda x: x[mine], self.per_task),
+                                  learnt_tasks=jax.tree.map(lambda x: np.asarray(x)[mine], learnt_now))))
+        return out
+
+    def raws(self, chunks_done: int, seconds: float, devices: int) -> dict:
+        """{entry key: RawResults} of the tasks of the first ``chunks_done`` chunks."""
+        upto, measured = int(self.after_tasks[chunks_done]), chunks_done + 1
+        raws = {}
+        for key, mine in self.entries():
+            task = jax.tree.map(lambda x: np.asarray(x[mine][:, :upto]), self.per_task)
+            held = jax.tree.map(lambda x: np.asarray(x[mine][:, :measured]), self.heldout.heldout)
+            learnt = jax.tree.map(lambda x: np.asarray(x[mine][:, :measured, :upto]), self.heldout.learnt)
+            raws[key] = results.RawResults(task.task, task.backward_returns, task.backward_valid, held,
+                                           self.after_tasks[:measured], float(seconds), int(devices),
+                                           task.backward_success, task.learnt, learnt)
         return raws

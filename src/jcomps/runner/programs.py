@@ -15,7 +15,7 @@ import contextlib
 import inspect
 import threading
 import time
-from typing import Callable, NamedTuple, Optional
+from typing import Any, Callable, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
@@ -86,7 +86,7 @@ class MethodProgram:
     ``make(hparams, progress_fn)`` makes the method from one member's dict of traced hyperparameters (empty
     without traced grid axes) and progress hook; it runs inside each traced function, so every member learns, is
     initialised and is evaluated with its own values. Every program takes ``hparams``, a dict of f32[members]
-    arrays (default: none). ``traces`` says how often each program was traced (once each, however many tasks
+    arrays (empty: none). A run calls them through ``bind`` (a ``BoundProgram`` holding its inputs). ``traces`` says how often each program was traced (once each, however many tasks
     run). While a program runs, every member's progress metrics (``jcomps.progress``) reach ``receiver`` (a host
     function of one dict, set by whoever runs the program; None: dropped) with the member's index as ``member``.
     """
@@ -166,50 +166,88 @@ class MethodProgram:
             self.compiled[part] = traced.lower().compile()
         return CompileTimes(time.time() - start, traced_at - start, compile_cache.hits() > hits)
 
-    def _call(self, part, *args):
-        fn = self.compiled.get(part)
-        return fn(*args) if fn is not None else getattr(self, "_" + part)(*args)
-
     def init(self, rngs, hparams: Optional[dict] = None):
         """The initial states of the members (keys ``rngs``), placed on the devices."""
         # Every process computes every member's state on its first device and keeps its own members' part.
         host = jax.device_put(jax.device_get((rngs, hparams or {})), jax.local_devices()[0])
         return self.put(jax.device_get(self._init(*host)))
 
-    def learn(self, states, sequences, i, seed_index, hparams: Optional[dict] = None):
-        """(states, TaskMetrics [members]) after learning the task at position ``i`` (i32[]) of ``sequences``."""
-        return self._call("learn", states, sequences, i, seed_index, hparams or {})
-
-    def evaluate_task(self, states, sequences, i, eval_keys, hparams: Optional[dict] = None):
-        """``continual.TaskEvaluation`` [members] of ``states``, right after learning the task at position ``i``."""
-        return self._call("evaluate_task", states, sequences, i, eval_keys, hparams or {})
-
-    def learn_chunk(self, states, sequences, start: int, stop: int, eval_keys, seed_index,
-                    hparams: Optional[dict] = None, after_learn: Optional[Callable] = None):
-        """(states, ChunkMetrics [members, stop - start]) after learning the tasks at positions ``start`` ..
-        ``stop - 1`` of ``sequences`` in turn, each evaluated right after it is learnt (``learn``, then
-        ``evaluate_task``): the runner's chunk of tasks, the one way a chunk runs. ``after_learn(states)`` is
-        called after each ``learn`` is dispatched, before its evaluation (the runner compiles the evaluation
-        programs there, while the first task trains)."""
-        task_metrics = []
-        for i in range(start, stop):
-            states, learnt = self.learn(states, sequences, np.int32(i), seed_index, hparams)
-            if after_learn is not None:
-                after_learn(states)
-            evaluation = self.evaluate_task(states, sequences, np.int32(i), eval_keys, hparams)
-            task_metrics.append(continual.chunk_metrics(learnt, evaluation))
-        return states, jax.tree.map(lambda *x: jnp.stack(x, axis=1), *task_metrics)
-
-    def measure(self, states, tasks, keys, sequences, learnt, eval_keys, seed_index, hparams: Optional[dict] = None):
-        """``continual.Measurement`` [members]: HeldoutMetrics on ``tasks`` with ``keys``, and the Evaluation
-        [members, num_tasks] of the ``learnt`` (i32[]) first tasks of ``sequences`` with ``eval_keys``, the
-        learnt tasks' keys."""
-        return self._call("measure", states, tasks, keys, sequences, learnt, eval_keys, seed_index, hparams or {})
+    def bind(self, sequences, seed_index, eval_keys, hparams: Optional[dict], heldout_tasks) -> "BoundProgram":
+        """These programs with one run's inputs (host arrays, placed on the devices once: ``ProgramInput``)."""
+        return BoundProgram(self, ProgramInput(self.put(sequences), self.put(seed_index), self.put(eval_keys),
+                                               self.put(hparams or {}), heldout_tasks))
 
     def put(self, tree):
         """Places host arrays with a leading member axis on the devices, split along that axis (with several
         processes, each process its own members: ``jcomps.runner.distributed.put``)."""
         return distributed.put(tree, self.sharding)
+
+
+class ProgramInput(NamedTuple):
+    """What every call of one run's programs shares, built once (``MethodProgram.bind``) and kept by its
+    ``BoundProgram``; all but ``heldout_tasks`` split over the devices along the members' axis."""
+
+    sequences: Any
+    """The members' task sequences: the family's task pytree [members, num_tasks, ...]."""
+    seed_index: Any
+    """i32[members]: each member's index (its progress events' ``member``)."""
+    eval_keys: Any
+    """[members, ...] keys of the evaluations of the learnt tasks (backward transfer, ``learnt_tasks``)."""
+    hparams: dict
+    """{field: f32[members]} of the traced hyperparameters (empty without traced grid axes)."""
+    heldout_tasks: Any
+    """The family's held-out tasks (host arrays, the same on every device)."""
+
+
+class BoundProgram:
+    """A method's compiled programs (``MethodProgram``) with one run's inputs (``ProgramInput``): the calls a run
+    makes take only what changes from call to call (the states, a task position, the held-out keys)."""
+
+    def __init__(self, program: MethodProgram, inputs: ProgramInput):
+        self.program, self.inputs = program, inputs
+
+    def arguments(self, part: str, states, i=0, keys=None, learnt=0) -> tuple:
+        """The arguments of ``part``'s compiled function (``MethodProgram.compile`` compiles for them)."""
+        x, i, learnt = self.inputs, np.int32(i), np.int32(learnt)
+        if part == "learn":
+            return states, x.sequences, i, x.seed_index, x.hparams
+        if part == "evaluate_task":
+            return states, x.sequences, i, x.eval_keys, x.hparams
+        if part == "measure":
+            keys = x.eval_keys if keys is None else keys  # the held-out keys are shaped as the learnt tasks'
+            return states, x.heldout_tasks, keys, x.sequences, learnt, x.eval_keys, x.seed_index, x.hparams
+        raise ValueError(f"part must be one of learn, evaluate_task, measure, got {part!r}")
+
+    def _call(self, part: str, *args):
+        fn = self.program.compiled.get(part)
+        return fn(*args) if fn is not None else getattr(self.program, "_" + part)(*args)
+
+    def learn(self, states, i: int):
+        """(states, TaskMetrics [members]) after learning the task at position ``i`` of the sequences."""
+        return self._call("learn", *self.arguments("learn", states, i))
+
+    def evaluate_task(self, states, i: int):
+        """``continual.TaskEvaluation`` [members] of ``states``, right after learning the task at position ``i``."""
+        return self._call("evaluate_task", *self.arguments("evaluate_task", states, i))
+
+    def learn_chunk(self, states, start: int, stop: int, after_learn: Optional[Callable] = None):
+        """(states, ChunkMetrics [members, stop - start]) after learning the tasks at positions ``start`` ..
+        ``stop - 1`` in turn, each evaluated right after it is learnt (``learn``, then ``evaluate_task``): the
+        runner's chunk of tasks, the one way a chunk runs. ``after_learn(states)`` is called after each ``learn`` is
+        dispatched, before its evaluation (the runner compiles the evaluation programs there, while the first task
+        trains)."""
+        task_metrics = []
+        for i in range(start, stop):
+            states, learnt = self.learn(states, i)
+            if after_learn is not None:
+                after_learn(states)
+            task_metrics.append(continual.chunk_metrics(learnt, self.evaluate_task(states, i)))
+        return states, jax.tree.map(lambda *x: jnp.stack(x, axis=1), *task_metrics)
+
+    def measure(self, states, keys, learnt: int):
+        """``continual.Measurement`` [members]: HeldoutMetrics on the held-out tasks with ``keys`` (host keys
+        [members, ...]), and the Evaluation [members, num_tasks] of the ``learnt`` first tasks of the sequences."""
+        return self._call("measure", *self.arguments("measure", states, keys=self.program.put(keys), learnt=learnt))
 
 
 class Programs:
