@@ -501,3 +501,32 @@ def test_a_full_disk_stops_a_checkpoint_with_a_clear_error_and_keeps_the_ones_be
     assert checkpoint.disk_full(OSError(errno.ENOSPC, "No space left on device"))
     assert checkpoint.disk_full(ValueError("RESOURCE_EXHAUSTED: Error writing local file"))
     assert not checkpoint.disk_full(ValueError("checkpoint entries differ"))
+
+
+def test_the_library_path_and_the_runner_learn_the_same_sequence(full_run):
+    """``continual.run_seeds`` (a whole sequence as one ``lax.scan`` over tasks, vmapped over seeds: the path for
+    library users) and the runner (a host loop over tasks of one compiled ``learn`` program per position, members
+    sharded over devices) learn the same tasks from the same keys: their per-task metrics agree. Not bit for bit:
+    the two are compiled as different programs (a scan over tasks against one program per position, and the
+    runner's members split over 2 devices), so XLA rounds some floats differently (on this tiny run one return of
+    18 by 1.5e-5); the iterations, what was solved and which iterations ran are equal, the returns and success
+    rates to 1e-5. Over hundreds of iterations such differences can change a run (docs/results.md, Ant Direction's
+    task 1 across programs), so the runner is the path the studies use."""
+    from jcomps import envs, methods
+    from jcomps.runner import members
+
+    stored = rundir.read(str(full_run))
+    family = envs.make(stored.run.family)
+    tasks = envs.sequence(family, stored.run.sequence, num_tasks=stored.run.num_tasks)
+    for name in stored.run.methods:
+        method = methods.make(name, family, stored.methods[name])
+        _, metrics = continual.run_seeds(method, tasks, members.method_keys(stored.run.seed_list))
+        raw = results.load(str(full_run), name)
+        np.testing.assert_array_equal(np.asarray(metrics.iterations), raw.task.iterations, err_msg=name)
+        np.testing.assert_array_equal(np.asarray(metrics.solved), raw.task.solved, err_msg=name)
+        valid = raw.task.per_iteration.valid.astype(bool)
+        np.testing.assert_array_equal(np.asarray(metrics.per_iteration.valid).astype(bool), valid, err_msg=name)
+        for field in ("mean_return", "success_rate"):
+            ours = np.asarray(getattr(metrics.per_iteration, field))[valid]
+            np.testing.assert_allclose(ours, getattr(raw.task.per_iteration, field)[valid], rtol=1e-5, atol=1e-5,
+                                       err_msg=f"{name} {field}")
