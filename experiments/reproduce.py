@@ -30,11 +30,10 @@ import threading
 import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, HERE)
-
-from progress import _clock  # noqa: E402
+sys.path.insert(0, HERE)  # merge_runs, the script beside this one
 
 from jcomps import envs  # noqa: E402
+from jcomps.console import clock  # noqa: E402
 from jcomps.analysis import paper, reproduction  # noqa: E402
 from jcomps.runner import files, hostdevices, results, rundir  # noqa: E402
 from jcomps.runner.files import RunError  # noqa: E402
@@ -224,7 +223,7 @@ def _schedule(args, proto, todo, running, failed, lock, began) -> None:
             pump.join()
             running.remove(item)
             if process.returncode == 0:
-                print(f"[{sequence}] {method} finished ({_clock(time.time() - began)} into the study)", flush=True)
+                print(f"[{sequence}] {method} finished ({clock(time.time() - began)} into the study)", flush=True)
             else:
                 failed.append((sequence, method, process.returncode))
                 print(f"error: [{sequence}] {method} stopped with exit code {process.returncode}; its log: "

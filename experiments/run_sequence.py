@@ -77,8 +77,7 @@ from jcomps.runner import checkpoint, compile_cache, description, distributed, e
 from jcomps.runner.files import RunError  # noqa: E402
 from jcomps.runner.programs import Programs  # noqa: E402
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from progress import Console  # noqa: E402
+from jcomps.console import Console  # noqa: E402
 
 # This process's compiled programs: a resume or a second run in the same process (the tests) does not compile
 # again. The library keeps no such cache of its own.

@@ -138,7 +138,12 @@ def tiny_run(runner, tmp_path_factory):
     return run
 
 
-console = _script_fixture("console", "progress", "The runner's progress lines and TensorBoard logs.")
+@pytest.fixture(scope="session")
+def console():
+    """The runner's progress lines and TensorBoard logs (``jcomps.console``)."""
+    from jcomps import console as module
+
+    return module
 runner = _script_fixture("runner", "run_sequence", "The runner (its ``parse_args`` and ``main``).")
 merge_runs = _script_fixture("merge_runs", "merge_runs", "Merging runs (its ``merge``).")
 render = _script_fixture("render", "render", "Policy replays (its ``render``).")

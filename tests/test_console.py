@@ -1,4 +1,4 @@
-"""Tests of the runner's console (``experiments/progress.py``): the runner's events turned into progress lines,
+"""Tests of the runner's console (``jcomps.console``): the runner's events turned into progress lines,
 TensorBoard logs and (offline) Weights & Biases runs."""
 
 import numpy as np

@@ -17,10 +17,11 @@ LAYERS = (
     ("jcomps.continual",),
     ("jcomps.runner",),
     ("jcomps.analysis",),
+    ("jcomps.console",),
 )
 """From the bottom: what every layer uses (numbers, progress events, registries, config dataclasses as options),
 the task families, the RL building blocks, the methods, the continual protocol (a method over a task sequence, its
-evaluations), the study runner, the report."""
+evaluations), the study runner, the report, the console the scripts show it on."""
 
 
 def _module(path: pathlib.Path) -> str:

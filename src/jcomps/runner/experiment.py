@@ -19,7 +19,7 @@ through its compiled programs (``jcomps.runner.programs``): the host loops over 
 same programs from the restored state, a resumed run gives per-task results identical to an uninterrupted one.
 
 Nothing here prints: the outside world gets events through one ``progress_fn`` callback (``ProgressReceiver``;
-``experiments/progress.py`` turns them into progress lines and TensorBoard logs). Compiled programs live in a
+``jcomps.console`` turns them into progress lines and TensorBoard logs). Compiled programs live in a
 ``Programs`` cache owned by the caller, never in a module-level registry, so two runs never share progress.
 ``RunError`` (``jcomps.runner.files``) is what ``run`` raises for a run directory it cannot make or resume.
 """

@@ -1,6 +1,7 @@
-"""What the runner shows and logs: progress lines, per-task results and TensorBoard, from the events of
-``jcomps.runner.experiment`` (its one ``progress_fn`` callback; every kind of event: ``experiment.EVENTS``). Host work
-lives here, at the edge: nothing under ``src/jcomps`` prints.
+"""What the runner shows and logs: progress lines, per-task results, TensorBoard and W&B, from the events of
+``jcomps.runner.experiment`` (its one ``progress_fn`` callback; every kind of event: ``experiment.EVENTS``). The
+edge of the package, above the report (tests/test_layout.py): the scripts in ``experiments/`` use it, and nothing
+else under ``src/jcomps`` prints.
 """
 
 from __future__ import annotations
@@ -65,7 +66,7 @@ class Progress:
         self.heldout_iteration = h
         self._throttled(lambda: f"[{self.name}] held-out meta-test: {h.shape[1]} held-out tasks, iteration "
                                 f"{int(h.max())} (slowest {int(h.min())}) | elapsed "
-                                f"{_clock(time.time() - self.heldout_start)}")
+                                f"{clock(time.time() - self.heldout_start)}")
 
     def record_iteration(self, member: int, task: int, iteration: int, success_rate: float,
                          value_ev: float = float("nan")):
@@ -86,7 +87,7 @@ class Progress:
             self.meta_health[member] = health
         self._throttled(lambda: f"[{self.name}] task {task + 1}/{self.num_tasks} meta-training step {int(step)}/"
                                 f"{int(steps)} bc loss {float(np.nanmean(self.meta_loss)):.3f}{self._health()}"
-                                f"{self._behind()} | elapsed {_clock(time.time() - self.start)} remaining "
+                                f"{self._behind()} | elapsed {clock(time.time() - self.start)} remaining "
                                 f"{self._remaining_text()}")
 
     def _health(self) -> str:
@@ -101,7 +102,7 @@ class Progress:
         self.meta_loss[member] = float(kl)
         self._throttled(lambda: f"[{self.name}] task {task + 1}/{self.num_tasks} compress iteration {int(step)}/"
                                 f"{int(steps)} kl {float(np.nanmean(self.meta_loss)):.4f}{self._behind()} | "
-                                f"elapsed {_clock(time.time() - self.start)} remaining {self._remaining_text()}")
+                                f"elapsed {clock(time.time() - self.start)} remaining {self._remaining_text()}")
 
     def _throttled(self, line: Callable[[], str]):
         now = time.time()
@@ -111,7 +112,7 @@ class Progress:
 
     def _remaining_text(self) -> str:
         remaining = self.remaining()
-        return "?" if remaining is None else "~" + _clock(remaining)
+        return "?" if remaining is None else "~" + clock(remaining)
 
     def _behind(self) -> str:
         if not self.members:
@@ -133,11 +134,11 @@ class Progress:
         tasks = f"{lo}" if lo == hi else f"{lo}-{hi}"
         ev = "" if np.all(np.isnan(self.value_ev)) else f" critic EV {float(np.nanmean(self.value_ev)):.2f}"
         return (f"[{self.name}] task {tasks}/{self.num_tasks} iteration {int(self.iteration.max())} success "
-                f"{float(self.success.mean()):.2f}{ev}{self._behind()} | elapsed {_clock(time.time() - self.start)} "
+                f"{float(self.success.mean()):.2f}{ev}{self._behind()} | elapsed {clock(time.time() - self.start)} "
                 f"remaining {self._remaining_text()}")
 
 
-def _clock(seconds: float) -> str:
+def clock(seconds: float) -> str:
     seconds = int(seconds)
     return f"{seconds // 3600}h{seconds // 60 % 60:02d}m" if seconds >= 3600 else f"{seconds // 60}m{seconds % 60:02d}s"
 
@@ -196,11 +197,11 @@ class Console:
         self.log(f"[{name}] compiling the {event['what']} program ({event['family']}, {event['method']}){after}...")
 
     def _still_compiling(self, name, event):
-        self.log(f"[{name}] still compiling the {event['what']} program: {_clock(event['seconds'])}")
+        self.log(f"[{name}] still compiling the {event['what']} program: {clock(event['seconds'])}")
 
     def _compiled(self, name, event):
         cached = "; from the compile cache" if event.get("cached") else ""
-        self.log(f"[{name}] {event['what']} program ready in {_clock(event['seconds'])} (tracing "
+        self.log(f"[{name}] {event['what']} program ready in {clock(event['seconds'])} (tracing "
                  f"{event['trace_seconds']:.0f}s{cached})")
         if event["part"] == "learn" and name in self.progress:
             self.progress[name].restart_clock()
@@ -220,7 +221,7 @@ class Console:
             self.progress[name].heldout_begin()
 
     def _evaluated(self, name, event):
-        self.log(f"[{name}] evaluations after {event['after_tasks']} task(s) done in {_clock(event['seconds'])}")
+        self.log(f"[{name}] evaluations after {event['after_tasks']} task(s) done in {clock(event['seconds'])}")
 
     def _warning(self, name, event):
         self.log(f"warning: {event['message']}")
@@ -274,7 +275,7 @@ class Console:
 
     def _done(self, name, event):
         self.progress.pop(name, None)
-        self.log(f"[{name}] done in {_clock(event['seconds'])}")
+        self.log(f"[{name}] done in {clock(event['seconds'])}")
 
     def _skipped(self, name, event):
         self.log(f"[{name}] already finished; skipping")
