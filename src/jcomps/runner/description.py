@@ -244,9 +244,9 @@ def from_json(data: Mapping, source: str = "run.json") -> RunDescription:
         raise RunError(f"{source}: devices is {devices!r}, not a device count; restore the file")
     if "processes" not in data:
         filled.append("processes")  # made before runs spread over processes
-    return RunDescription(run, eval_config, method_configs, grid, overrides, devices, data.get("processes", 1),
-                          by_method, made, tuple(filled),
-                          "; ".join(unresumable) or None)
+    return RunDescription(run=run, eval=eval_config, methods=method_configs, grid=grid, overrides=overrides,
+                          devices=devices, processes=data.get("processes", 1), chunk_tasks_by_method=by_method,
+                          format=made, filled=tuple(filled), unresumable="; ".join(unresumable) or None)
 
 
 def resolve(options: Mapping[str, Any], *, set_specs=(), grid_specs=(),
@@ -306,16 +306,19 @@ def resolve(options: Mapping[str, Any], *, set_specs=(), grid_specs=(),
                 option = "--grid max_tasks=" if any(a.field == "max_tasks" for a in grid) else "--max-tasks "
                 raise ValueError(f"{option}{max_tasks} is smaller than --num-tasks {run.num_tasks} ({name} keeps "
                                  f"one experience slot per task)")
-    return RunDescription(run, eval_config, method_configs, grid, configs.to_json(overrides), jax.device_count(),
-                          jax.process_count())
+    return RunDescription(run=run, eval=eval_config, methods=method_configs, grid=grid,
+                          overrides=configs.to_json(overrides), devices=jax.device_count(),
+                          processes=jax.process_count())
 
 
 def describe(run: RunConfig, eval_config: continual.EvalConfig, method_configs: Mapping, grid: grids.Grid = (),
              overrides: Optional[Mapping] = None) -> RunDescription:
     """The description of a run made from configs already built (the library's way in, without a command line):
     ``eval_config`` resolved for the family, JAX's device and process counts."""
-    return RunDescription(run, eval_config.resolve(run.family), {name: method_configs[name] for name in run.methods},
-                          tuple(grid), configs.to_json(overrides or {}), jax.device_count(), jax.process_count())
+    return RunDescription(run=run, eval=eval_config.resolve(run.family),
+                          methods={name: method_configs[name] for name in run.methods}, grid=tuple(grid),
+                          overrides=configs.to_json(overrides or {}), devices=jax.device_count(),
+                          processes=jax.process_count())
 
 
 def heldout_chosen(description: RunDescription) -> list[str]:

@@ -86,8 +86,8 @@ class MethodProgram:
     ``make(hparams, progress_fn)`` makes the method from one member's dict of traced hyperparameters (empty
     without traced grid axes) and progress hook; it runs inside each traced function, so every member learns, is
     initialised and is evaluated with its own values. Every program takes ``hparams``, a dict of f32[members]
-    arrays (empty: none). A run calls them through ``bind`` (a ``BoundProgram`` holding its inputs). ``traces`` says how often each program was traced (once each, however many tasks
-    run). While a program runs, every member's progress metrics (``jcomps.progress``) reach ``receiver`` (a host
+    arrays (empty: none). A run calls them through ``bind`` (a ``BoundProgram`` holding its inputs). ``traces``
+    says how often each program was traced (once each, however many tasks run). While a program runs, every member's progress metrics (``jcomps.progress``) reach ``receiver`` (a host
     function of one dict, set by whoever runs the program; None: dropped) with the member's index as ``member``.
     """
 
