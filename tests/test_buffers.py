@@ -146,6 +146,46 @@ def test_the_stores_shapes_and_dtypes():
          ((n,), jnp.int32)])
 
 
+def _round_trip(example, batch):
+    """Each store built from ``example``, empty and after ``batch`` is written into it (as the methods write:
+    skilled_update, recent_add then sample_offpolicy of every row, sequence_write into slot 1, transitions_add)."""
+    S = batch.reward.shape[1]
+    empty = dict(skilled=buffers.skilled_init_like(example, S), recent=buffers.recent_init_like(example, 2),
+                 seq=buffers.sequence_init_like(example, 3, S, S), trans=buffers.transitions_init_like(example, 2, T * S))
+    skilled = buffers.skilled_update(empty["skilled"], batch)
+    off = buffers.sample_offpolicy(buffers.recent_add(empty["recent"], batch), S, jax.random.PRNGKey(0))
+    full = dict(skilled=skilled, off=off, seq=buffers.sequence_write(empty["seq"], jnp.int32(1), skilled, off),
+                trans=buffers.transitions_add(empty["trans"], jnp.int32(0), batch))
+    return empty, full
+
+
+def test_stores_start_empty_and_hold_what_is_written():
+    batch = _batch([3.0, 1.0, 2.0, 0.0], 10.0)  # trajectory b has observations 10 + b
+    empty, full = _round_trip(batch, batch)
+    # Empty: nothing counts as data until it is written.
+    assert np.all(np.isneginf(empty["skilled"].returns)) and not np.any(empty["recent"].finite)
+    assert int(empty["recent"].iterations) == 0 and not np.any(empty["seq"].task_valid)
+    assert not np.any(empty["seq"].offpolicy.mask) and not np.any(empty["trans"].count)
+    # The skilled store holds the batch's trajectories by falling return, their data with them.
+    np.testing.assert_array_equal(full["skilled"].returns, [3.0, 2.0, 1.0, 0.0])
+    np.testing.assert_array_equal(full["skilled"].obs[0, :, 0], [10.0, 12.0, 11.0, 13.0])
+    # The off-policy sample of the one iteration held is the batch itself, in some order, every row unmasked.
+    order = np.asarray(full["off"].traj.obs[0, :, 0] - 10.0).astype(int)
+    assert sorted(order.tolist()) == [0, 1, 2, 3] and np.all(full["off"].mask == 1.0)
+    reordered = jax.tree.map(lambda x: jnp.take(x, order, axis=1), batch._replace(last_obs=None))
+    chex.assert_trees_all_equal(full["off"].traj, reordered._replace(last_obs=batch.last_obs[order]))
+    # The sequence store holds them in slot 1 only, and marks only slot 1.
+    np.testing.assert_array_equal(full["seq"].task_valid, [False, True, False])
+    chex.assert_trees_all_equal(jax.tree.map(lambda x: x[1], full["seq"].skilled), full["skilled"])
+    chex.assert_trees_all_equal(jax.tree.map(lambda x: x[1], full["seq"].offpolicy), full["off"])
+    assert np.all(np.isneginf(np.asarray(full["seq"].skilled.returns)[[0, 2]]))
+    # The replay slot holds the batch's T·B transitions, time-major; the other slot is untouched.
+    flat = buffers.transitions_of(batch)
+    for k, v in flat.items():
+        np.testing.assert_array_equal(getattr(full["trans"], k)[0], v)
+    np.testing.assert_array_equal(full["trans"].count, [T * B, 0])
+
+
 def test_stores_from_an_example_are_those_sized_by_hand():
     example = _batch(np.arange(B), 3.0)  # arrays or their shapes: the same stores
     for spec in (example, jax.eval_shape(lambda: example), buffers.trajectory_spec(T, B, OBS, ACT)):
@@ -158,12 +198,18 @@ def test_stores_from_an_example_are_those_sized_by_hand():
     assert np.all(np.isneginf(buffers.skilled_init_like(example, 6).returns))
 
 
-def test_stores_take_the_examples_dtypes():
-    half = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, jnp.bfloat16), buffers.trajectory_spec(T, B, OBS, ACT))
-    for store in (buffers.skilled_init_like(half, 2), buffers.recent_init_like(half, 2).traj,
-                  buffers.sequence_init_like(half, 2, 2, 2).offpolicy.traj, buffers.transitions_init_like(half, 2, 4)):
+def test_stores_take_the_examples_dtypes_and_keep_them_when_written():
+    half = jax.tree.map(lambda x: x.astype(jnp.bfloat16), _batch([1.5, 0.25, 2.0, 0.5], 4.0))
+    empty, full = _round_trip(jax.eval_shape(lambda: half), half)
+    for name, store in [*empty.items(), *full.items()]:
         leaves = [x for x in jax.tree.leaves(store) if jnp.issubdtype(x.dtype, jnp.floating)]
-        assert {x.dtype for x in leaves} == {jnp.dtype(jnp.bfloat16)}
+        dtypes = {x.dtype for x in leaves} - ({jnp.dtype(jnp.float32)} if name in ("off", "seq") else set())
+        assert dtypes == {jnp.dtype(jnp.bfloat16)}, f"{name}: {dtypes}"  # the off-policy mask is float32 by design
+    # A write neither promotes a dtype (a checkpoint's store would change type) nor rounds a value it stores.
+    for name in ("skilled", "seq", "trans"):
+        chex.assert_trees_all_equal_dtypes(empty[name], full[name])
+    np.testing.assert_array_equal(np.asarray(full["skilled"].returns, np.float32), [2.0, 1.5, 0.5, 0.25])
+    np.testing.assert_array_equal(np.asarray(full["trans"].obs[0]), np.asarray(half.obs.reshape(-1, OBS)))
 
 
 def test_rollout_example_has_a_rollouts_shapes():

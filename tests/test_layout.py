@@ -94,3 +94,36 @@ def test_the_law_catches_a_violation():
     """The checks see what they are meant to see: the report is above the runner, the runner above the methods."""
     assert _layer("jcomps.analysis.report") > _layer("jcomps.runner.experiment") > _layer("jcomps.methods.comps")
     assert "jcomps.runner.results" in GRAPH["jcomps.analysis.report"]
+
+
+
+MAX_FUNCTION_LINES = 80
+MAX_RUNNER_CLASS_LINES = 150
+
+
+def _sizes(source: str, kind):
+    """(name, lines) of every node of ``kind`` in ``source``, nested ones included."""
+    return [(n.name, n.end_lineno - n.lineno + 1) for n in ast.walk(ast.parse(source)) if isinstance(n, kind)]
+
+
+FUNCTIONS = (ast.FunctionDef, ast.AsyncFunctionDef)
+
+
+def test_functions_stay_short():
+    """Issue 59: every function in ``src/`` under 80 lines (a longer one is two functions a reader must hold at once)."""
+    long = [f"{m}.{n}: {k} lines" for m, p in MODULES.items() for n, k in _sizes(p.read_text(), FUNCTIONS)
+            if k >= MAX_FUNCTION_LINES]
+    assert not long, f"functions of {MAX_FUNCTION_LINES} lines or more: {long}"
+
+
+def test_runner_classes_stay_small():
+    """Issue 59: no class of the runner over 150 lines (the hub it was is split into its parts)."""
+    big = [f"{m}.{n}: {k} lines" for m, p in MODULES.items() if m.startswith("jcomps.runner")
+           for n, k in _sizes(p.read_text(), ast.ClassDef) if k > MAX_RUNNER_CLASS_LINES]
+    assert not big, f"runner classes over {MAX_RUNNER_CLASS_LINES} lines: {big}"
+
+
+def test_the_size_checks_count_lines():
+    source = "class A:\n    def f(self):\n        def g():\n            return 1\n        return g\n"
+    assert sorted(_sizes(source, FUNCTIONS)) == [("f", 4), ("g", 2)]
+    assert _sizes(source, ast.ClassDef) == [("A", 5)]
