@@ -10,6 +10,7 @@ import shutil
 import pytest
 
 from jcomps import continual, methods, migrations
+from jcomps.methods import comps
 from jcomps.runner import description, grid, rundir
 from jcomps.runner.files import RunError
 
@@ -58,6 +59,42 @@ def test_every_method_config_survives_the_round_trip():
     assert back.eval.heldout_budget == 0  # resolved for the family when described (the Ants' default)
     assert [key for m, key, _ in back.entries() if m == "comps"][:2] == ["comps[learning_rate=0.01,hidden_sizes=8]",
                                                                          "comps[learning_rate=0.01,hidden_sizes=4x4]"]
+
+
+def test_run_json_records_the_values_that_follow_others():
+    """Fields that follow another value when None are filled once, when the run is resolved, so that run.json holds
+    what ran; one that follows a grid axis stays None and takes each point's value (``comps.meta_config``)."""
+    described = description.resolve({"methods": ("comps", "pearl"), "learning_rate": 3e-4})
+    comps_config, family = described.methods["comps"], described.family
+    assert comps_config.ppo.budget == family.default_budget and comps_config.meta.value_learning_rate == 3e-4
+    assert comps_config.meta.reward_scale == comps_config.ppo.reward_scale
+    assert comps_config.meta.hold_std is (comps_config.ppo.std_mode == "fixed")
+    pearl = described.methods["pearl"]
+    assert pearl.budget == family.default_budget and pearl.num_updates == pearl.updates_for(family) >= 1
+    assert described.eval.heldout_budget is not None
+    assert rundir.differences(described.to_json(), description.from_json(described.to_json()).to_json()) == []
+    # Given, a value is kept: it does not follow.
+    given = description.resolve({"methods": ("comps",)}, set_specs=["comps.meta.value_learning_rate=0.02"])
+    assert given.methods["comps"].meta.value_learning_rate == 0.02
+    # Under a grid over the learning rate, the value head's rate follows each point's.
+    gridded = description.resolve({"methods": ("comps",)}, grid_specs=["learning_rate=1e-3,3e-4"])
+    assert gridded.methods["comps"].meta.value_learning_rate is None
+    assert gridded.methods["comps"].ppo.budget == family.default_budget  # follows the family, not the grid
+    rates = [comps.meta_config(point.config).value_learning_rate
+             for point in grid.points("comps", gridded.methods["comps"], gridded.grid)]
+    assert rates == [1e-3, 3e-4]
+
+
+def test_a_resume_resolves_as_the_new_run_did():
+    """One resolver: a resume's description, from the recorded run and the options given again, is the one the run
+    was made with, ``--set`` and a grid included."""
+    options = {"methods": ("comps", "ppo_tl"), "seeds": 2, "num_tasks": 3, "learning_rate": 1e-3}
+    made = description.resolve(options, set_specs=["comps.meta.num_meta_steps=3"], grid_specs=["init_std=0.3,0.5"])
+    stored = description.from_json(json.loads(json.dumps(made.to_json())))
+    assert description.resolve({}, stored=stored) == made
+    assert description.resolve(options, stored=stored) == made
+    other = description.resolve({"seeds": 3}, stored=stored)
+    assert rundir.differences(made.to_json(), other.to_json()) == ["run.seeds: run has 2, asked 3"]
 
 
 @pytest.mark.parametrize("edit,message", [
@@ -133,10 +170,15 @@ def test_resume_fills_config_fields_added_since_the_run_was_made(runner, full_ru
         del stored["methods"]["comps"]["warm_start"]
         del stored["run"]["tasks"]  # made before --tasks: the family's list
         del stored["processes"]  # made before runs spread over processes
+        # Made before the resolver recorded the values that follow others: null, resolved where used (this run
+        # gave --budget and --heldout-budget; its meta step followed its RL step).
+        stored["methods"]["comps"]["meta"].update(value_learning_rate=None, reward_scale=None, hold_std=None)
 
     old, stored = old_run("old", edit)
     filled = rundir.read(str(old)).filled
-    assert set(filled) == {"methods.comps.ppo.entropy_coef", "methods.comps.warm_start", "run.tasks", "processes"}
+    assert set(filled) == {"methods.comps.ppo.entropy_coef", "methods.comps.warm_start", "run.tasks", "processes",
+                           "methods.comps.meta.value_learning_rate", "methods.comps.meta.reward_scale",
+                           "methods.comps.meta.hold_std"}
     # A value other than the field's default is a difference, named, and nothing is written.
     code, err = _resumed(runner, old, capsys, "--set", "comps.ppo.entropy_coef=0.5")
     assert code == 2 and "methods.comps.ppo.entropy_coef: run has 0.0, asked 0.5" in err

@@ -34,8 +34,10 @@ from jcomps.methods import base
 from jcomps.methods.base import Method, TaskMetrics, collection, task_slots
 from jcomps.methods.catalogue import LADDER, LADDER_FEATURES, METHODS, STANDARDISED_INNER_ADVANTAGES
 from jcomps.methods.registry import (EVERY_FAMILY, REGISTRY, Registered, config_class, default_config, make, names,
-                                     register, resolve_config, settings_by_field, with_family_settings)
+                                     register, resolve_config, settings_by_field, with_family_settings,
+                                     with_followed)
 
 __all__ = ["EVERY_FAMILY", "LADDER", "LADDER_FEATURES", "METHODS", "Method", "REGISTRY", "Registered",
            "STANDARDISED_INNER_ADVANTAGES", "TaskMetrics", "base", "collection", "config_class", "default_config",
-           "make", "names", "register", "resolve_config", "settings_by_field", "task_slots", "with_family_settings"]
+           "make", "names", "register", "resolve_config", "settings_by_field", "task_slots", "with_family_settings",
+           "with_followed"]

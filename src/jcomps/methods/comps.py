@@ -76,6 +76,12 @@ class CoMPSConfig(ppo.PPOBased):
         """Whether the meta step starts from a fresh initialisation after every task."""
         return not self.warm_start and self.meta_start == "fresh"
 
+    def follow(self, family, keep: frozenset = frozenset()) -> "CoMPSConfig":
+        """This config with the meta step's fields that follow the RL step filled (``meta_config``), as a run
+        records them (``jcomps.methods.with_followed``), but for those following a field a grid varies (``keep``:
+        the grid's flat field names; ``meta_config`` fills them at each grid point)."""
+        return dataclasses.replace(self, meta=_followed_meta(self, keep))
+
 
 class CoMPSState(NamedTuple):
     """Everything CoMPS carries between tasks.
@@ -95,14 +101,24 @@ class CoMPSState(NamedTuple):
     fresh: Optional[dict] = None
 
 
+# The meta step's fields that follow the RL step's when None: field -> (the RL step's field it follows, its value).
+_META_FOLLOWS = {"reward_scale": ("reward_scale", lambda ppo_config: ppo_config.reward_scale),
+                 "value_learning_rate": ("learning_rate", lambda ppo_config: ppo_config.learning_rate),
+                 "hold_std": ("std_mode", lambda ppo_config: ppo_config.std_mode == "fixed")}
+
+
+def _followed_meta(config: CoMPSConfig, keep: frozenset = frozenset()) -> meta.MetaConfig:
+    fill = {name: value(config.ppo) for name, (source, value) in _META_FOLLOWS.items()
+            if getattr(config.meta, name) is None and source not in keep}
+    return dataclasses.replace(config.meta, **fill)
+
+
 def meta_config(config: CoMPSConfig) -> meta.MetaConfig:
     """The meta step's config with the fields that follow the RL step resolved: ``reward_scale`` None takes the RL
     step's reward scale, ``value_learning_rate`` None its learning rate (either may be a traced grid value),
-    ``hold_std`` None holds the std where the RL step's is fixed (``ppo.std_mode``)."""
-    follow = {"reward_scale": config.ppo.reward_scale, "value_learning_rate": config.ppo.learning_rate,
-              "hold_std": config.ppo.std_mode == "fixed"}
-    return dataclasses.replace(config.meta, **{name: value for name, value in follow.items()
-                                               if getattr(config.meta, name) is None})
+    ``hold_std`` None holds the std where the RL step's is fixed (``ppo.std_mode``). A run's configs come with them
+    filled (``CoMPSConfig.follow``) but where a grid varies what they follow: here they take each point's value."""
+    return _followed_meta(config)
 
 
 def meta_start(config: CoMPSConfig, state: CoMPSState, learnt: dict) -> dict:

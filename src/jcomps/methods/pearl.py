@@ -198,6 +198,15 @@ class PEARLConfig:
             return self.num_updates
         return max(1, int(round(self.updates_per_step * self.num_trajectories * family.max_steps)))
 
+    def follow(self, family: Family, keep: frozenset = frozenset()) -> "PEARLConfig":
+        """This config with the fields that follow another value filled, as a run records them
+        (``jcomps.methods.with_followed``): ``budget`` None, the family's default budget; ``num_updates`` None,
+        ``updates_for(family)``, unless a grid varies what it follows (``keep``: the grid's flat field names)."""
+        fill = {"budget": self.budget_for(family)} if self.budget is None else {}
+        if self.num_updates is None and not keep & {"updates_per_step", "num_trajectories"}:
+            fill["num_updates"] = self.updates_for(family)
+        return dataclasses.replace(self, **fill) if fill else self
+
     def initial_episodes(self, family: Family) -> int:
         """Episodes collected with the prior before a task's first iteration."""
         return -(-self.initial_steps // family.max_steps)

@@ -100,9 +100,25 @@ def default_config(name: str, family: Family | str):
     return config
 
 
+def with_followed(config, family: Family | str, keep=frozenset()):
+    """``config`` with every field that follows another value when None filled with that value, nested parts first
+    (each config class's ``follow(family, keep)``: ``PPOConfig.budget`` the family's default budget, CoMPS's
+    ``meta.reward_scale``, ``meta.value_learning_rate`` and ``meta.hold_std`` the RL step's, PEARL's
+    ``num_updates``), so that a run's ``run.json`` records the values that ran. ``keep``: the flat field names a
+    hyperparameter grid varies; a field following one of them stays None and takes each point's value where it is
+    used (``jcomps.methods.comps.meta_config``)."""
+    family = envs.make(family) if isinstance(family, str) else family
+    keep = frozenset(keep)
+    changes = {f.name: with_followed(getattr(config, f.name), family, keep) for f in dataclasses.fields(config)
+               if dataclasses.is_dataclass(getattr(config, f.name))}
+    config = dataclasses.replace(config, **changes) if changes else config
+    follow = getattr(config, "follow", None)
+    return follow(family, keep) if follow is not None else config
+
+
 def resolve_config(name: str, family: Family | str, *, stored: Optional[Mapping] = None,
                    shared: Optional[Mapping] = None, num_tasks: Optional[int] = None,
-                   overrides: Optional[Mapping] = None, default=None):
+                   overrides: Optional[Mapping] = None, default=None, grid_fields=frozenset()):
     """Method ``name``'s full config on ``family``, from its layers, each over the ones before:
 
     1. its registered default (``REGISTRY``);
@@ -113,7 +129,9 @@ def resolve_config(name: str, family: Family | str, *, stored: Optional[Mapping]
     4. ``shared``: {field: value} of the options every method shares (``--learning-rate``), set wherever the field
        occurs in the config, nested parts included;
     5. ``num_tasks``: a config with task slots (``task_slots``) gets one per task, unless layer 3 or 4 gave them;
-    6. ``overrides``: {"part.field": value} of this method alone (``--set``; ``configs.parse_overrides``).
+    6. ``overrides``: {"part.field": value} of this method alone (``--set``; ``configs.parse_overrides``);
+    7. the fields that follow another value when None, filled (``with_followed``), but those following one of the
+       ``grid_fields`` (the flat field names of the run's grid axes).
 
     A hyperparameter grid's points are the last layer (``jcomps.runner.grid.points`` over this config). Every layer is
     validated by the config classes' checks (ValueError naming the field); ``overrides``' errors name ``--set``.
@@ -127,7 +145,8 @@ def resolve_config(name: str, family: Family | str, *, stored: Optional[Mapping]
     given = set(stored or ()) | set(shared or ())
     if num_tasks is not None and task_slots(config) is not None and "max_tasks" not in given:
         config = dataclasses.replace(config, max_tasks=num_tasks)
-    return configs.apply_overrides({name: config}, {name: dict(overrides)} if overrides else {})[name]
+    config = configs.apply_overrides({name: config}, {name: dict(overrides)} if overrides else {})[name]
+    return with_followed(config, family, grid_fields)
 
 
 def make(name: str, family: Family, config=None, progress_fn: Optional[ProgressFn] = None) -> Method:

@@ -6,7 +6,8 @@ and the device and process counts (float rounding and each process's shards depe
 it from the options a command line gave (the runner's script only parses them); ``to_json`` and ``from_json``
 turn it into a run directory's ``run.json`` and back. ``from_json`` is the one place that reads what older
 versions of jcomps wrote, by the tables of ``jcomps.migrations``: a field added since a run was made takes the value
-the run had (its default, or ``EARLIER_VALUES``), and is listed in ``filled``; where the addition changed what
+the run had (its default, or ``EARLIER_VALUES``), a field it held as null because it followed another value (the
+RL step's learning rate, the family's budget) takes that value, and either is listed in ``filled``; where the addition changed what
 checkpoints hold (``UNRESUMABLE_BEFORE``, ``UNRESUMABLE_EVAL_BEFORE``, a ``format`` older than ``FORMAT``) the
 description says why the run cannot be resumed (``unresumable``), and stays reportable.
 """
@@ -176,6 +177,18 @@ def _missing_leaves(stored: Mapping, default: Mapping, prefix: str = "") -> list
     return out
 
 
+def _followed(stored: Mapping, resolved: Mapping, prefix: str = "") -> list[str]:
+    """Dotted paths of the leaves that ``stored`` (a config as JSON) held as null and ``resolved`` fills: fields
+    that followed another value, which runs made before the resolver recorded them left unfilled."""
+    out = []
+    for key, value in resolved.items():
+        if isinstance(value, dict) and isinstance(stored.get(key), dict):
+            out += _followed(stored[key], value, f"{prefix}{key}.")
+        elif key in stored and stored[key] is None and value is not None:
+            out.append(prefix + key)
+    return out
+
+
 def _section(data: Mapping, key: str, source: str) -> dict:
     value = data.get(key)
     if not isinstance(value, dict):
@@ -216,7 +229,13 @@ def from_json(data: Mapping, source: str = "run.json") -> RunDescription:
             why = migrations.UNRESUMABLE_EVAL_BEFORE[field]
             unresumable.append(f"it was made before eval.{field} existed: {why}")
     eval_config = build("eval", lambda: configs.config_from_dict(continual.EvalConfig(), eval_data))
+    if eval_config.heldout_budget is None:
+        filled.append("eval.heldout_budget")  # made before the resolved value was recorded
+        eval_config = eval_config.resolve(run.family)
 
+    classes = {name: methods.config_class(name) for name in run.methods}
+    grid = build("grid", lambda: grids.from_json(data.get("grid"), classes))
+    grid_fields = frozenset(axis.field for axis in grid)
     stored_methods = _section(data, "methods", source)
     method_configs = {}
     for name in run.methods:
@@ -232,10 +251,8 @@ def from_json(data: Mapping, source: str = "run.json") -> RunDescription:
                 unresumable.append(f"it was made before methods.{name}.{field} existed: {why}")
         method_configs[name] = build(f"methods.{name}",
                                      lambda: methods.resolve_config(name, run.family, stored=stored,
-                                                                    default=default))
-
-    classes = {name: methods.config_class(name) for name in run.methods}
-    grid = build("grid", lambda: grids.from_json(data.get("grid"), classes))
+                                                                    default=default, grid_fields=grid_fields))
+        filled += [f"methods.{name}.{field}" for field in _followed(stored, configs.to_json(method_configs[name]))]
     overrides = data.get("overrides") or {}
     if not isinstance(overrides, dict):
         raise RunError(f"{source}: 'overrides' is not an object; restore the file")
@@ -258,9 +275,11 @@ def resolve(options: Mapping[str, Any], *, set_specs=(), grid_specs=(),
     the ``--set METHOD.FIELD=VALUE`` words; ``grid_specs``: the ``--grid FIELD=VALUES`` words. With ``stored`` (a
     ``--resume``) the stored run is the base, options given again over it, and the stored grid and overrides
     unless given again; ``jcomps.runner.rundir.open_run_dir`` then refuses any difference. Each method's config
-    comes from its layers (``jcomps.methods.resolve_config``): its registered default on the family, the shared
-    options, one task slot per task, then ``--set`` for that method alone; a grid's points are built (and so
-    checked) last. The device and process counts are JAX's.
+    comes from its layers (``jcomps.methods.resolve_config``, a resume's included: the recorded config is its
+    layer): its registered default on the family, the shared options, one task slot per task, ``--set`` for that
+    method alone, then the fields that follow another value filled (``jcomps.methods.with_followed``: ``run.json``
+    records what runs, but for a field following a grid axis); a grid's points are built (and so checked) last.
+    The device and process counts are JAX's.
     """
     options = dict(options)
     base = stored.run if stored else RunConfig()
@@ -273,20 +292,15 @@ def resolve(options: Mapping[str, Any], *, set_specs=(), grid_specs=(),
     defaults = {name: methods.default_config(name, run.family) for name in run.methods}
     overrides = (configs.parse_overrides(set_specs, defaults) if set_specs or not stored
                  else {m: dict(v) for m, v in stored.overrides.items()})
-    method_configs = {}
-    for name in run.methods:
-        if stored is not None and name in stored.methods:
-            config = configs.apply_overrides({name: configs.with_shared(stored.methods[name], options)},
-                                             {name: overrides[name]} if name in overrides else {})[name]
-        else:
-            config = methods.resolve_config(name, run.family, shared=options, num_tasks=run.num_tasks,
-                                            overrides=overrides.get(name), default=defaults[name])
-        method_configs[name] = config
     classes = {name: methods.config_class(name) for name in run.methods}
-    if grid_specs:
-        grid = grids.parse(grid_specs, classes)
-    else:
-        grid = stored.grid if stored is not None else ()
+    grid = grids.parse(grid_specs, classes) if grid_specs else (stored.grid if stored is not None else ())
+    grid_fields = frozenset(axis.field for axis in grid)
+    method_configs = {}
+    for name in run.methods:  # a resumed run's recorded config is its layer 3 (``methods.resolve_config``)
+        recorded = stored.methods.get(name) if stored is not None else None
+        method_configs[name] = methods.resolve_config(
+            name, run.family, stored=None if recorded is None else configs.to_json(recorded), shared=options,
+            num_tasks=run.num_tasks, overrides=overrides.get(name), default=defaults[name], grid_fields=grid_fields)
     for axis in grid:
         if options.get(axis.field) is not None:
             raise ValueError(f"--grid {axis.field}: also given as --{axis.field.replace('_', '-')}; give its values "
@@ -314,9 +328,12 @@ def resolve(options: Mapping[str, Any], *, set_specs=(), grid_specs=(),
 def describe(run: RunConfig, eval_config: continual.EvalConfig, method_configs: Mapping, grid: grids.Grid = (),
              overrides: Optional[Mapping] = None) -> RunDescription:
     """The description of a run made from configs already built (the library's way in, without a command line):
-    ``eval_config`` resolved for the family, JAX's device and process counts."""
+    ``eval_config`` resolved for the family, the fields of ``method_configs`` that follow another value filled
+    (``jcomps.methods.with_followed``), JAX's device and process counts."""
+    grid_fields = frozenset(axis.field for axis in grid)
     return RunDescription(run=run, eval=eval_config.resolve(run.family),
-                          methods={name: method_configs[name] for name in run.methods}, grid=tuple(grid),
+                          methods={name: methods.with_followed(method_configs[name], run.family, grid_fields)
+                                   for name in run.methods}, grid=tuple(grid),
                           overrides=configs.to_json(overrides or {}), devices=jax.device_count(),
                           processes=jax.process_count())
 

@@ -116,6 +116,12 @@ class PPOConfig:
         """Iterations per task for ``family``."""
         return family.default_budget if self.budget is None else self.budget
 
+    def follow(self, family: Family, keep: frozenset = frozenset()) -> "PPOConfig":
+        """This config with the fields that follow another value filled, as a run records them
+        (``jcomps.methods.with_followed``): ``budget`` None, the family's default budget. ``keep``: the flat field
+        names a grid varies (nothing here follows one)."""
+        return self if self.budget is not None else dataclasses.replace(self, budget=family.default_budget)
+
     def trained(self, policy: dict) -> dict:
         """``policy`` as the updates see it: with ``std_mode="fixed"`` its std is a constant of every gradient
         (``networks.held_std``), else unchanged."""
