@@ -95,13 +95,13 @@ def test_learnt_tasks_are_evaluated_with_the_episodes_they_had_when_learnt(full_
     program, the same numbers), so that task's forgetting is 0."""
     for name in ("comps", "ppo_tl"):
         raw = results.load(str(full_run), name)
-        learnt, later = raw.learnt, raw.learnt_tasks
+        learnt, later = raw.per_task.learnt, raw.measured.learnt
         assert learnt.valid.all() and later.success_rate.shape == (2, 4, 3)  # [seeds, after 0-3 tasks, tasks]
         np.testing.assert_array_equal(later.valid[0], np.tril(np.ones((4, 3), bool), -1))  # learnt by then
         for p in (1, 2, 3):
             np.testing.assert_allclose(later.mean_return[:, p, p - 1], learnt.mean_return[:, p - 1], rtol=1e-5)
             np.testing.assert_allclose(later.success_rate[:, p, p - 1], learnt.success_rate[:, p - 1], atol=1e-6)
-        assert raw.backward_success.shape == raw.backward_returns.shape == (2, 3, 2)
+        assert raw.per_task.backward_success.shape == raw.per_task.backward_returns.shape == (2, 3, 2)
 
 
 def test_killed_and_resumed_run_equals_the_uninterrupted_one(runner, full_run, full_run_argv, tmp_path,
@@ -241,8 +241,8 @@ def test_runs_made_before_the_learnt_tasks_evaluations_still_report(full_run, tm
         with open(path, "wb") as f:
             np.savez(f, **kept)
     raw = results.load(str(old), "comps")
-    assert raw.learnt is None and raw.learnt_tasks is None and raw.backward_success is None
-    assert results.truncate(raw, 2).learnt is None
+    assert raw.per_task.learnt is None and raw.measured.learnt is None and raw.per_task.backward_success is None
+    assert results.truncate(raw, 2).per_task.learnt is None
     got = report.write(str(old))
     full = json.loads((full_run / "results.json").read_text())
     for name in ("comps", "ppo_tl"):
@@ -258,13 +258,15 @@ def test_forgetting_with_the_learnt_tasks_evaluated_at_the_end_only(full_run):
     performance come from it alone, and a run stopped before its end has none to report yet."""
     raw = results.load(str(full_run), "ppo_tl")
     every = report.learnt_summary(raw)
-    valid = raw.learnt_tasks.valid.copy()
+    valid = raw.measured.learnt.valid.copy()
     valid[:, :-1] = False
-    end = report.learnt_summary(raw._replace(learnt_tasks=raw.learnt_tasks._replace(valid=valid)))
+    end = report.learnt_summary(raw._replace(measured=raw.measured._replace(
+        learnt=raw.measured.learnt._replace(valid=valid))))
     assert end["forgetting"]["by_evaluation"]["after_tasks"] == [3]
     assert end["forgetting"]["per_task"] == every["forgetting"]["per_task"]
     assert end["average_performance"]["mean"] == every["average_performance"]["mean"]
-    none = report.learnt_summary(raw._replace(learnt_tasks=raw.learnt_tasks._replace(valid=valid & False)))
+    none = report.learnt_summary(raw._replace(measured=raw.measured._replace(
+        learnt=raw.measured.learnt._replace(valid=valid & False))))
     assert "--learnt-eval end" in none["forgetting"]["note"] and "note" in none["average_performance"]
 
 
@@ -522,11 +524,11 @@ def test_the_library_path_and_the_runner_learn_the_same_sequence(full_run):
         method = methods.make(name, family, stored.methods[name])
         _, metrics = continual.run_seeds(method, tasks, members.method_keys(stored.run.seed_list))
         raw = results.load(str(full_run), name)
-        np.testing.assert_array_equal(np.asarray(metrics.iterations), raw.task.iterations, err_msg=name)
-        np.testing.assert_array_equal(np.asarray(metrics.solved), raw.task.solved, err_msg=name)
-        valid = raw.task.per_iteration.valid.astype(bool)
+        np.testing.assert_array_equal(np.asarray(metrics.iterations), raw.per_task.task.iterations, err_msg=name)
+        np.testing.assert_array_equal(np.asarray(metrics.solved), raw.per_task.task.solved, err_msg=name)
+        valid = raw.per_task.task.per_iteration.valid.astype(bool)
         np.testing.assert_array_equal(np.asarray(metrics.per_iteration.valid).astype(bool), valid, err_msg=name)
         for field in ("mean_return", "success_rate"):
             ours = np.asarray(getattr(metrics.per_iteration, field))[valid]
-            np.testing.assert_allclose(ours, getattr(raw.task.per_iteration, field)[valid], rtol=1e-5, atol=1e-5,
-                                       err_msg=f"{name} {field}")
+            np.testing.assert_allclose(ours, getattr(raw.per_task.task.per_iteration, field)[valid], rtol=1e-5,
+                                       atol=1e-5, err_msg=f"{name} {field}")

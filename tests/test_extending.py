@@ -64,9 +64,9 @@ def test_a_registered_family_is_found_and_runs_through_the_runner(page, run):
     assert methods.default_config("ppo_tl", "line_goal").ppo.normalize_observations is False
     assert configs["ppo_tl"].ppo.budget == 10
     raw = results.load(out, "ppo_tl")
-    assert raw.task.iterations.shape == (2, 2)
-    assert np.all((raw.task.iterations >= 1) & (raw.task.iterations <= 10))
-    assert raw.heldout.mean_return.shape[:3] == (2, 2, 2)  # seeds, held-out columns (0 and 2 tasks), tasks
+    assert raw.per_task.task.iterations.shape == (2, 2)
+    assert np.all((raw.per_task.task.iterations >= 1) & (raw.per_task.task.iterations <= 10))
+    assert raw.measured.heldout.mean_return.shape[:3] == (2, 2, 2)  # seeds, held-out columns (0 and 2 tasks), tasks
     assert (pathlib.Path(out) / "results.json").is_file()
 
 
@@ -74,8 +74,8 @@ def test_a_registered_method_runs_through_the_runner_and_starts_each_task_with_a
     out, raws, configs = run
     assert "ppo_fresh_critic" in methods.names()
     raw = raws["ppo_fresh_critic"]
-    assert raw.task.iterations.shape == (2, 2) and np.all(raw.task.iterations >= 1)
-    assert np.isfinite(raw.task.per_iteration.mean_return).all()
+    assert raw.per_task.task.iterations.shape == (2, 2) and np.all(raw.per_task.task.iterations >= 1)
+    assert np.isfinite(raw.per_task.task.per_iteration.mean_return).all()
     assert "ppo_fresh_critic" in (pathlib.Path(out) / "significance.md").read_text()
     # The law of the method: each task starts from the learnt policy and the initial critic.
     family = envs.make("line_goal")
@@ -146,18 +146,18 @@ def es_run(page, tmp_path_factory):
 def test_a_method_without_ppo_runs_through_the_runner_with_its_own_meta_test(es_run):
     out, raws, config = es_run
     raw = raws["es_tl"]
-    its = raw.task.iterations
+    its = raw.per_task.task.iterations
     assert its.shape == (2, 2) and np.all((its >= 1) & (its <= 20))
-    valid = raw.task.per_iteration.valid
-    returns = raw.task.per_iteration.mean_return
+    valid = raw.per_task.task.per_iteration.valid
+    returns = raw.per_task.task.per_iteration.mean_return
     # ES learns: on every task of every seed, the last iteration's return is above the first's.
     last = np.take_along_axis(returns, (its - 1)[..., None].astype(int), axis=2)[..., 0]
     assert np.all(last > returns[..., 0]), (returns[..., 0], last)
     assert np.all(valid.sum(axis=2) == its)
     # The held-out meta-test ran ES's own adapt (it has no PPO config): a curve of 3 points per held-out task at each
     # of the 3 measurements (before the first task, after each chunk).
-    assert raw.heldout.mean_return.shape[:4] == (2, 3, 2, 3)
-    assert np.isfinite(raw.heldout.mean_return).all()
+    assert raw.measured.heldout.mean_return.shape[:4] == (2, 3, 2, 3)
+    assert np.isfinite(raw.measured.heldout.mean_return).all()
     assert "es_tl" in (pathlib.Path(out) / "significance.md").read_text()
     with pytest.raises(ValueError, match="num_trajectories=3; allowed: an even integer >= 2"):
         type(config)(num_trajectories=3)

@@ -229,7 +229,7 @@ def test_an_unfinished_run_reports_the_tasks_every_method_has_finished(run_dir):
     description = rundir.read(str(out))
     loaded, cut = report.read_raws(str(out), description, partial=True)
     assert cut == {"tasks": 1, "of": 2, "tasks_done": {"comps": 2, "ppo_tl": 1}}
-    assert all(raw.task.iterations.shape == (S, 1) for raw in loaded.values())
+    assert all(raw.per_task.task.iterations.shape == (S, 1) for raw in loaded.values())
     results = report.summarize(description, loaded)
     assert results["methods"]["comps"]["iterations_to_success"] == ITERATIONS["comps"][:, :1].tolist()
     assert results["methods"]["comps"]["heldout"]["after_tasks"] == [0, 1]

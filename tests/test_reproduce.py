@@ -243,7 +243,7 @@ def test_a_study_resumes_what_did_not_finish_and_reports_what_did(study, reprodu
     assert "2 runs (1 finished, 1 to run)" in said and "starting ppo_tl" in said and "starting comps" not in said
     assert json.loads((copy / "reproduction.json").read_text())["partial"] is None
     again = results.load(str(copy / "non-stationary" / "ppo_tl"), "ppo_tl")
-    np.testing.assert_array_equal(again.task.iterations, raw.task.iterations)
+    np.testing.assert_array_equal(again.per_task.task.iterations, raw.per_task.task.iterations)
 
 
 @pytest.mark.parametrize("argv, says", [

@@ -5,13 +5,19 @@ before it lacks the field: it takes the field's default, or, where the default d
 the value it had (``EARLIER_VALUES``, read by ``jcomps.methods.resolve_config`` through ``with_earlier_values``).
 When an addition changed what checkpoints hold, such a run can still be reported but not resumed
 (``UNRESUMABLE_BEFORE``, ``UNRESUMABLE_EVAL_BEFORE``, and ``FORMAT`` with ``FORMAT_CHANGES``; read by
-``jcomps.runner.description.from_json``, which says why).
+``jcomps.runner.description.from_json``, which says why). A field that followed another value when None (the RL
+step's budget, CoMPS's meta reward scale) was recorded as null before the resolver filled it: reading such a
+``run.json`` fills it (``jcomps.methods.with_followed``). A finished entry's raw results (``raw/<entry>.npz``) written
+by earlier versions are brought to today's names and fields by ``upgrade_raw`` (``RAW_KEYS_BEFORE``,
+``RAW_FILLED_AS_NAN``; read by ``jcomps.runner.results``).
 """
 
 from __future__ import annotations
 
 import copy
 from typing import Any, Callable, Mapping
+
+import numpy as np
 
 FORMAT = 3
 """The format of what a run's checkpoints hold beyond its configs, recorded as ``run.json``'s ``format`` (runs
@@ -63,4 +69,36 @@ def with_earlier_values(stored: Mapping) -> dict:
             value = earlier(stored)
             if value is not None:
                 node[leaf] = value
+    return out
+
+
+# Raw-results arrays (``raw/<entry>.npz``) of the format before RawResults, by their names then -> their names now;
+# keys ``iter.<field>`` were ``task.per_iteration.<field>``.
+RAW_KEYS_BEFORE = {"heldout_return": "heldout.mean_return", "heldout_success": "heldout.success_rate"}
+
+# Raw-results arrays added since: name -> the array its shape follows. A file that lacks one gets NaN of that shape
+# (the quantity was not measured: the report shows it as missing).
+RAW_FILLED_AS_NAN = {
+    "task.per_iteration.value_ev": "task.per_iteration.valid",  # the critic's explained variance
+    **{f"task.meta.{part}.inner_gain": f"task.meta.{part}.bc_loss" for part in ("steps", "start", "end")},
+}
+
+
+def upgrade_raw(arrays: Mapping[str, np.ndarray]) -> dict:
+    """A raw-results file's arrays (name -> array) as this version names them, with the arrays added since filled
+    (``RAW_FILLED_AS_NAN``; iterations-to-success on the held-out tasks, not measured before RawResults, as 0 and
+    unsolved)."""
+    out = dict(arrays)
+    if "task.per_iteration.valid" not in out:  # the format before RawResults
+        out = {}
+        for key, value in arrays.items():
+            if key.startswith("iter."):
+                key = "task.per_iteration." + key[len("iter."):]
+            out[RAW_KEYS_BEFORE.get(key, key)] = value
+        shape = out["heldout.mean_return"].shape[:3]  # [S, P, H]
+        out.setdefault("heldout.iterations", np.zeros(shape, np.int32))
+        out.setdefault("heldout.solved", np.zeros(shape, bool))
+    for key, like in RAW_FILLED_AS_NAN.items():
+        if key not in out and like in out:
+            out[key] = np.full(np.shape(out[like]), np.nan, np.float32)
     return out

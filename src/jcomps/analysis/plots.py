@@ -72,7 +72,7 @@ def _lifelong_return(save: Callable, raws: dict) -> None:
     """Every iteration's mean return over the sequence: thin per seed, thick the mean while all seeds run."""
     fig, ax = _figure((7, 4))
     for k, (name, raw) in enumerate(raws.items()):
-        valid, ret = raw.task.per_iteration.valid, raw.task.per_iteration.mean_return
+        valid, ret = raw.per_task.task.per_iteration.valid, raw.per_task.task.per_iteration.mean_return
         lines = [ret[s][valid[s]] for s in range(ret.shape[0])]
         n = min(len(x) for x in lines)
         for line in lines:

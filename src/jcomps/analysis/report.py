@@ -97,13 +97,13 @@ def summarize(description: RunDescription, raws: dict, baseline: Optional[str] =
     entries = description.entries()
     overall_its, overall_ret = {}, {}
     # Every method's AUC over one horizon and performance profile over one τ grid: the longest budget of the run.
-    horizon = max(raws[name].task.per_iteration.valid.shape[-1] for _, name, _ in entries)
+    horizon = max(raws[name].per_task.task.per_iteration.valid.shape[-1] for _, name, _ in entries)
     taus = statistics.profile_taus(horizon)
     for method, name, values in entries:
         results["methods"][name] = _entry(description, method, values, raws[name], taus)
         if values is not None:
-            per_iteration = raws[name].task.per_iteration
-            overall_its[name] = float(raws[name].task.iterations.mean())
+            per_iteration = raws[name].per_task.task.per_iteration
+            overall_its[name] = float(raws[name].per_task.task.iterations.mean())
             overall_ret[name] = float(statistics.per_task_mean(per_iteration.mean_return, per_iteration.valid).mean())
     best = {m: m for m in run.methods}
     if description.grid:
@@ -128,17 +128,17 @@ def summarize(description: RunDescription, raws: dict, baseline: Optional[str] =
 def _entry(description: RunDescription, method: str, values, raw, taus) -> dict:
     """``results.json``'s summary of one entry (a method, or one grid point of it: ``values``) from its raw
     results; the forward transfer is added by ``summarize``, which needs every entry."""
-    its = raw.task.iterations
-    valid = raw.task.per_iteration.valid
-    ret, succ = raw.task.per_iteration.mean_return, raw.task.per_iteration.success_rate
+    its = raw.per_task.task.iterations
+    valid = raw.per_task.task.per_iteration.valid
+    ret, succ = raw.per_task.task.per_iteration.mean_return, raw.per_task.task.per_iteration.success_rate
     per_task_return = statistics.per_task_mean(ret, valid)
     mean, se = mean_se(its)
-    bt = statistics.backward_transfer(ret, valid, raw.backward_returns, raw.backward_valid)
+    bt = statistics.backward_transfer(ret, valid, raw.per_task.backward_returns, raw.per_task.backward_valid)
     steps, task_steps, before_steps = env_steps(description, method, values)
     # Samples-to-success per seed and task: MAML+TL's iterations collect two batches, PPO's one; PNC's solved
     # tasks add their compress phase (an unsolved task's budget count includes it already); PEARL's every task
     # its initial prior-z collection.
-    samples = its * steps + raw.task.solved * task_steps + before_steps
+    samples = its * steps + raw.per_task.task.solved * task_steps + before_steps
     samples_mean, samples_se = mean_se(samples)
     entry = {
         "iterations_to_success": its.astype(int).tolist(),
@@ -150,7 +150,7 @@ def _entry(description: RunDescription, method: str, values, raw, taus) -> dict:
         "env_steps_to_success": samples.astype(np.int64).tolist(),
         "env_steps_to_success_mean": samples_mean.round(1).tolist(),
         "env_steps_to_success_se": samples_se.round(1).tolist(),
-        "solved": raw.task.solved.astype(bool).tolist(),
+        "solved": raw.per_task.task.solved.astype(bool).tolist(),
         "mean_return_per_task": per_task_return.round(6).tolist(),
         "return_curves": _curves(ret, valid),
         "success_rate_curves": _curves(succ, valid),
@@ -158,19 +158,19 @@ def _entry(description: RunDescription, method: str, values, raw, taus) -> dict:
         "heldout": _heldout_summary(description, raw),
         "iqm": [{"tasks": list(r), **statistics.iqm_ci(its[:, r[0] - 1:r[1]])}
                 for r in statistics.sequence_halves(its.shape[1])],
-        "nonfinite_iterations": int(np.sum(raw.task.per_iteration.nonfinite > 0)),
+        "nonfinite_iterations": int(np.sum(raw.per_task.task.per_iteration.nonfinite > 0)),
         "seconds": float(raw.seconds),
         "devices": int(raw.devices),
     }
-    entry["critic"] = critic_summary(raw.task.per_iteration)
-    if raw.task.meta is not None:
-        entry["meta"] = meta_summary(raw.task.meta)
-    if raw.task.policy_health is not None:
-        entry["policy"] = policy_summary(raw.task.policy_health)
+    entry["critic"] = critic_summary(raw.per_task.task.per_iteration)
+    if raw.per_task.task.meta is not None:
+        entry["meta"] = meta_summary(raw.per_task.task.meta)
+    if raw.per_task.task.policy_health is not None:
+        entry["policy"] = policy_summary(raw.per_task.task.policy_health)
     entry.update(learnt_summary(raw))
     entry["performance_profile"] = {"statistic": "fraction of runs (seeds × tasks) that reached the threshold "
                                                  "within tau iterations; 95% stratified-bootstrap band",
-                                    **cm.performance_profile_ci(its, raw.task.solved, taus)}
+                                    **cm.performance_profile_ci(its, raw.per_task.task.solved, taus)}
     if values is not None:
         m_its, se_its = mean_se(its.astype(np.float64).mean(axis=1))
         entry.update({"method": method, "grid": {k: _jsonable_value(v) for k, v in values.items()},
@@ -182,29 +182,29 @@ def _entry(description: RunDescription, method: str, values, raw, taus) -> dict:
 
 def _heldout_summary(description: RunDescription, raw) -> dict:
     """The held-out meta-test of one entry: zero-shot and adapted returns, iterations to success."""
-    h_ret = raw.heldout.mean_return.mean(axis=2)  # [seeds, points, iterations + 1], averaged over tasks
+    h_ret = raw.measured.heldout.mean_return.mean(axis=2)  # [seeds, points, iterations + 1], averaged over tasks
     return {
         "after_tasks": raw.heldout_after_tasks.tolist(),
         "zero_shot_return": h_ret[:, :, 0].round(6).tolist(),
         "adapted_return": h_ret[:, :, -1].round(6).tolist(),
         "adaptation_iterations": int(h_ret.shape[-1] - 1),
         # [seeds, points, held-out tasks]; the budget is the cap (never reached within it)
-        "iterations_to_success": raw.heldout.iterations.astype(int).tolist(),
-        "iterations_to_success_mean": raw.heldout.iterations.mean(axis=2).round(3).tolist(),
-        "solved": raw.heldout.solved.astype(bool).tolist(),
+        "iterations_to_success": raw.measured.heldout.iterations.astype(int).tolist(),
+        "iterations_to_success_mean": raw.measured.heldout.iterations.mean(axis=2).round(3).tolist(),
+        "solved": raw.measured.heldout.solved.astype(bool).tolist(),
         "budget": int(description.eval.heldout_budget or 0),
     }
 
 
 def _significance(raws: dict, best: dict, baseline: str, method_names, grid: bool) -> dict:
     """The significance table: ``baseline`` against every other method, each at its best grid point."""
-    base = raws[best[baseline]].task.iterations.mean(axis=1)
+    base = raws[best[baseline]].per_task.task.iterations.mean(axis=1)
     others = [m for m in method_names if m != baseline]
     return {
         "baseline": best[baseline],
         "statistic": "per-seed mean iterations-to-success over the sequence"
                      + (", each method at its best grid point" if grid else ""),
-        "against": {best[m]: statistics.significance(base, raws[best[m]].task.iterations.mean(axis=1))
+        "against": {best[m]: statistics.significance(base, raws[best[m]].per_task.task.iterations.mean(axis=1))
                     for m in others},
         "probability_of_improvement": {best[m]: probability_of_improvement(raws[best[m]], raws[best[baseline]],
                                                                           best[baseline]) for m in others}}
@@ -229,10 +229,10 @@ def learnt_summary(raw: results_.RawResults) -> dict:
     evaluations of its learnt tasks (``RawResults.learnt`` right after each task, ``learnt_tasks`` after each chunk
     or at the end): {"forgetting", "average_performance", "learnt_success"}, each with a ``note`` instead when the
     run has no such evaluations."""
-    if raw.learnt is None or raw.learnt_tasks is None:
+    if raw.per_task.learnt is None or raw.measured.learnt is None:
         note = {"note": "not measured: the run was made before jcomps evaluated the learnt tasks"}
         return {"forgetting": note, "average_performance": note}
-    learnt, later = raw.learnt, raw.learnt_tasks
+    learnt, later = raw.per_task.learnt, raw.measured.learnt
     rows = [p for p in range(later.valid.shape[1]) if later.valid[:, p].any()]
     if not rows:
         note = {"note": "not measured yet: the learnt tasks are evaluated at the end of the sequence only "
@@ -284,7 +284,7 @@ def forward_transfer_summary(raw: results_.RawResults, reference_raw: Optional[r
     if reference_raw is None:
         return {"reference": None, "note": f"not measured: no {FT_REFERENCE} (from scratch) in this run; merge a run "
                                            f"of {FT_REFERENCE} with the same options (experiments/merge_runs.py)"}
-    own, ref = raw.task.per_iteration, reference_raw.task.per_iteration
+    own, ref = raw.per_task.task.per_iteration, reference_raw.per_task.task.per_iteration
     a, ref_a, ft = statistics.forward_transfer(own.success_rate, own.valid, ref.success_rate, ref.valid, ids, horizon)
     return {
         "reference": reference,
@@ -306,7 +306,8 @@ def probability_of_improvement(raw: results_.RawResults, baseline_raw: results_.
     return {"over": baseline,
             "statistic": f"P(iterations-to-success < {baseline}'s; ties count 1/2) per task over pairs of seeds "
                          "(Mann-Whitney), averaged over tasks; 95% stratified-bootstrap interval",
-            **statistics.probability_of_fewer_iterations(raw.task.iterations, baseline_raw.task.iterations)}
+            **statistics.probability_of_fewer_iterations(raw.per_task.task.iterations,
+                                                         baseline_raw.per_task.task.iterations)}
 
 
 def critic_summary(per_iteration) -> dict:

@@ -7,8 +7,8 @@ it from the options a command line gave (the runner's script only parses them); 
 turn it into a run directory's ``run.json`` and back. ``from_json`` is the one place that reads what older
 versions of jcomps wrote, by the tables of ``jcomps.migrations``: a field added since a run was made takes the value
 the run had (its default, or ``EARLIER_VALUES``), a field it held as null because it followed another value (the
-RL step's learning rate, the family's budget) takes that value, and either is listed in ``filled``; where the addition changed what
-checkpoints hold (``UNRESUMABLE_BEFORE``, ``UNRESUMABLE_EVAL_BEFORE``, a ``format`` older than ``FORMAT``) the
+RL step's learning rate, the family's budget) takes that value, and either is listed in ``filled``; where the
+addition changed what checkpoints hold (``UNRESUMABLE_BEFORE``, ``UNRESUMABLE_EVAL_BEFORE``, a ``format`` older than ``FORMAT``) the
 description says why the run cannot be resumed (``unresumable``), and stays reportable.
 """
 

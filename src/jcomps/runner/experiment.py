@@ -362,8 +362,7 @@ class _HostMetrics:
             task = jax.tree.map(lambda x: np.asarray(x[mine][:, :upto]), self.per_task)
             held = jax.tree.map(lambda x: np.asarray(x[mine][:, :measured]), self.heldout.heldout)
             learnt = jax.tree.map(lambda x: np.asarray(x[mine][:, :measured, :upto]), self.heldout.learnt)
-            raws[key] = results.RawResults(
-                task=task.task, backward_returns=task.backward_returns, backward_valid=task.backward_valid,
-                heldout=held, heldout_after_tasks=self.after_tasks[:measured], seconds=float(seconds),
-                devices=int(devices), backward_success=task.backward_success, learnt=task.learnt, learnt_tasks=learnt)
+            raws[key] = results.RawResults(per_task=task, measured=continual.Measurement(held, learnt),
+                                           heldout_after_tasks=self.after_tasks[:measured], seconds=float(seconds),
+                                           devices=int(devices))
         return raws

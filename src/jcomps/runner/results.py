@@ -2,9 +2,12 @@
 written by the runner (``jcomps.runner.experiment``) and read back by the report (``jcomps.analysis.report``), here
 only.
 
-On disk, ``raw/<entry>.npz`` holds one array per leaf, named by its path in ``RawResults``
-(``task.per_iteration.mean_return``, ``heldout.iterations``, ...). Files written before this structure existed
-(keys ``iter.*``, ``heldout_return``, ...) are read too.
+A ``RawResults`` holds the runner's metric objects as they are, with a leading seed axis: the ``ChunkMetrics`` of
+every task learnt and the ``Measurement`` of every held-out measurement. On disk, ``raw/<entry>.npz`` holds one
+array per leaf, named by its path: the ``ChunkMetrics``' at the top (``task.per_iteration.mean_return``,
+``backward_returns``, ``learnt.valid``), the ``Measurement``'s as ``heldout.*`` and ``learnt_tasks.*``, then
+``heldout_after_tasks``, ``seconds`` and ``devices`` (the names these files have always had). Files written by
+earlier versions are read through ``jcomps.migrations.upgrade_raw``.
 """
 
 from __future__ import annotations
@@ -16,8 +19,8 @@ from typing import NamedTuple, Optional
 import jax
 import numpy as np
 
-from jcomps.continual import Evaluation, HeldoutMetrics
-from jcomps.methods.base import TaskMetrics
+from jcomps import migrations
+from jcomps.continual import ChunkMetrics, Evaluation, HeldoutMetrics, Measurement
 from jcomps.runner.files import RunError
 
 
@@ -25,35 +28,29 @@ class RawResults(NamedTuple):
     """Every metric of one results entry (numpy; S seeds, N tasks, P held-out measurements, H held-out tasks).
 
     Attributes:
-      task: TaskMetrics: iterations and solved [S, N]; per_iteration fields [S, N, budget] (masked by valid).
-      backward_returns: f32[S, N, k], the policy after task i on tasks i − 1 − d (``continual.ChunkMetrics``).
-      backward_valid: bool[S, N, k].
-      heldout: HeldoutMetrics with a leading [S, P] (curves [S, P, H, iterations + 1]; iterations [S, P, H]).
-      heldout_after_tasks: i64[P], tasks learnt before each held-out measurement.
-      seconds: wall time of the entry's program; devices: devices it ran on.
-      backward_success: f32[S, N, k], the success rate of the backward-transfer episodes.
-      learnt: Evaluation [S, N], the policy right after task i on task i (``continual.ChunkMetrics.learnt``).
-      learnt_tasks: Evaluation [S, P, N], the policy of each held-out measurement on every task learnt by then
+      per_task: ChunkMetrics [S, N]: each task's TaskMetrics (iterations and solved [S, N], per_iteration fields
+        [S, N, budget], masked by valid), its backward-transfer returns, validity and success rates [S, N, k] (the
+        policy after task i on tasks i − 1 − d) and ``learnt`` (the policy right after task i on task i).
+      measured: Measurement [S, P]: the held-out meta-test (curves [S, P, H, iterations + 1], iterations [S, P, H])
+        and ``learnt`` [S, P, N], the policy of each measurement on every task learnt by then
         (``continual.learnt_tasks``; valid False where not evaluated: tasks not yet learnt, and with
         ``learnt_eval=end`` every measurement before the last task).
+      heldout_after_tasks: i64[P], tasks learnt before each held-out measurement.
+      seconds: wall time of the entry's program; devices: devices it ran on.
 
-    The last three are None in runs made before jcomps measured them (``results.load`` reads such runs).
+    ``per_task.backward_success``, ``per_task.learnt`` and ``measured.learnt`` are None in runs made before jcomps
+    measured them (``load`` reads such runs).
     """
 
-    task: TaskMetrics
-    backward_returns: np.ndarray
-    backward_valid: np.ndarray
-    heldout: HeldoutMetrics
+    per_task: ChunkMetrics
+    measured: Measurement
     heldout_after_tasks: np.ndarray
     seconds: float
     devices: int
-    backward_success: Optional[np.ndarray] = None
-    learnt: Optional[Evaluation] = None
-    learnt_tasks: Optional[Evaluation] = None
 
 
 def _leaves(prefix: str, x):
-    if x is None:  # an optional part a method does not report (TaskMetrics.meta)
+    if x is None:  # an optional part a method does not report (TaskMetrics.meta), or an older run's
         return
     if hasattr(x, "_asdict"):
         for key, value in x._asdict().items():
@@ -62,7 +59,21 @@ def _leaves(prefix: str, x):
         yield prefix[:-1], np.asarray(x)
 
 
+def _arrays(raw: RawResults) -> dict:
+    """The file's arrays by name (the module docstring)."""
+    measured = raw.measured
+    return {**dict(_leaves("", raw.per_task)), **dict(_leaves("heldout.", measured.heldout)),
+            **dict(_leaves("learnt_tasks.", measured.learnt)), "heldout_after_tasks": raw.heldout_after_tasks,
+            "seconds": np.asarray(raw.seconds), "devices": np.asarray(raw.devices)}
+
+
+def _present(prefix: str, arrays: dict) -> bool:
+    return any(key == prefix[:-1] or key.startswith(prefix) for key in arrays)
+
+
 def _build(cls, prefix: str, arrays: dict):
+    """``cls`` (a NamedTuple of arrays, nested) from the arrays named ``prefix`` + its fields' paths; an Optional
+    field none of whose arrays is present is None."""
     hints = typing.get_type_hints(cls)
     kwargs = {}
     for name in cls._fields:
@@ -70,7 +81,7 @@ def _build(cls, prefix: str, arrays: dict):
         args = [a for a in typing.get_args(tp) if a is not type(None)]
         if typing.get_origin(tp) is typing.Union and len(args) == 1:  # Optional[X]: present if any key is
             tp = args[0]
-            if not any(key == f"{prefix}{name}" or key.startswith(f"{prefix}{name}.") for key in arrays):
+            if not _present(f"{prefix}{name}.", arrays):
                 kwargs[name] = None
                 continue
         if isinstance(tp, type) and hasattr(tp, "_fields"):
@@ -80,39 +91,13 @@ def _build(cls, prefix: str, arrays: dict):
     return cls(**kwargs)
 
 
-# Keys of the format before RawResults -> their path now.
-_LEGACY = {"heldout_return": "heldout.mean_return", "heldout_success": "heldout.success_rate"}
-
-
-def _upgrade(arrays: dict) -> dict:
-    if "task.per_iteration.valid" in arrays:
-        return _add_value_ev(_add_inner_gain(arrays))
-    out = {}
-    for key, value in arrays.items():
-        if key.startswith("iter."):
-            key = "task.per_iteration." + key[len("iter."):]
-        out[_LEGACY.get(key, key)] = value
-    shape = out["heldout.mean_return"].shape[:3]  # [S, P, H]: iterations-to-success was not measured then
-    out.setdefault("heldout.iterations", np.zeros(shape, np.int32))
-    out.setdefault("heldout.solved", np.zeros(shape, bool))
-    return _add_value_ev(out)
-
-
-def _add_value_ev(arrays: dict) -> dict:
-    """The RL step's metrics of a run made before the critic's explained variance was reported: NaN."""
-    if "task.per_iteration.value_ev" in arrays or "task.per_iteration.valid" not in arrays:
-        return arrays
-    shape = np.shape(arrays["task.per_iteration.valid"])
-    return {**arrays, "task.per_iteration.value_ev": np.full(shape, np.nan, np.float32)}
-
-
-def _add_inner_gain(arrays: dict) -> dict:
-    """The meta step's health of a run made before the inner step's gain was measured: NaN gains."""
-    for part in ("steps", "start", "end"):
-        loss = arrays.get(f"task.meta.{part}.bc_loss")
-        if loss is not None and f"task.meta.{part}.inner_gain" not in arrays:
-            arrays = {**arrays, f"task.meta.{part}.inner_gain": np.full(np.shape(loss), np.nan, np.float32)}
-    return arrays
+def _from_arrays(arrays: dict) -> RawResults:
+    # Runs made before the learnt tasks' evaluations lack ``learnt_tasks``.
+    learnt_tasks = _build(Evaluation, "learnt_tasks.", arrays) if _present("learnt_tasks.", arrays) else None
+    heldout = _build(HeldoutMetrics, "heldout.", arrays)
+    return RawResults(per_task=_build(ChunkMetrics, "", arrays), measured=Measurement(heldout, learnt_tasks),
+                      heldout_after_tasks=arrays["heldout_after_tasks"], seconds=float(arrays["seconds"]),
+                      devices=int(arrays["devices"]))
 
 
 def path(out: str, name: str) -> str:
@@ -128,7 +113,7 @@ def partial_path(out: str, name: str) -> str:
 def _save(target: str, raw: RawResults) -> None:
     os.makedirs(os.path.dirname(target), exist_ok=True)
     with open(target + ".tmp", "wb") as f:
-        np.savez(f, **dict(_leaves("", raw)))
+        np.savez(f, **_arrays(raw))
     os.replace(target + ".tmp", target)
 
 
@@ -137,11 +122,9 @@ def _load(target: str, name: str) -> Optional[RawResults]:
         return None
     try:
         with np.load(target) as f:
-            arrays = _upgrade({k: f[k] for k in f.files})
-        raw = _build(RawResults, "", arrays)
+            return _from_arrays(migrations.upgrade_raw({k: f[k] for k in f.files}))
     except Exception as err:  # noqa: BLE001 - any failure to read means the file is unusable
         raise RunError(f"{target} cannot be read ({type(err).__name__}: {err}); delete it to rerun {name}") from err
-    return raw._replace(seconds=float(raw.seconds), devices=int(raw.devices))
 
 
 def save(out: str, name: str, raw: RawResults) -> None:
@@ -172,7 +155,7 @@ def load_partial(out: str, name: str) -> Optional[RawResults]:
 
 def tasks_done(raw: RawResults) -> int:
     """How many tasks of the sequence ``raw`` covers."""
-    return int(raw.task.iterations.shape[1])
+    return int(raw.per_task.task.iterations.shape[1])
 
 
 def truncate(raw: RawResults, num_tasks: int) -> RawResults:
@@ -181,12 +164,7 @@ def truncate(raw: RawResults, num_tasks: int) -> RawResults:
     if not 1 <= num_tasks <= tasks_done(raw):
         raise ValueError(f"num_tasks must be in [1, {tasks_done(raw)}], got {num_tasks}")
     keep = raw.heldout_after_tasks <= num_tasks
-    first = lambda x: x[:, :num_tasks]  # noqa: E731 - None (no meta, an older run) stays None
-    return raw._replace(task=jax.tree.map(first, raw.task), backward_returns=first(raw.backward_returns),
-                        backward_valid=first(raw.backward_valid),
-                        heldout=jax.tree.map(lambda x: x[:, keep], raw.heldout),
-                        heldout_after_tasks=raw.heldout_after_tasks[keep],
-                        backward_success=jax.tree.map(first, raw.backward_success),
-                        learnt=jax.tree.map(first, raw.learnt),
-                        learnt_tasks=jax.tree.map(lambda x: x[:, keep, :num_tasks], raw.learnt_tasks))
-
+    measured = Measurement(jax.tree.map(lambda x: x[:, keep], raw.measured.heldout),
+                           jax.tree.map(lambda x: x[:, keep, :num_tasks], raw.measured.learnt))
+    return raw._replace(per_task=jax.tree.map(lambda x: x[:, :num_tasks], raw.per_task), measured=measured,
+                        heldout_after_tasks=raw.heldout_after_tasks[keep])
