@@ -5,6 +5,7 @@ import numpy as np
 
 from jcomps import continual
 from jcomps.methods.base import TaskMetrics
+from jcomps.runner import events
 from jcomps.training.ppo import IterationMetrics
 
 
@@ -21,26 +22,26 @@ def _chunk_metrics(seeds, tasks, budget, nonfinite_at=None):
 
 def _start_event(seeds=2, padding=0, **changes):
     """The runner's ``start`` event of a CoMPS program (members: the seeds and the padding), with ``changes``."""
-    return {"event": "start", "program": "comps", "family": "cheetah_vel", "sequence": "non-stationary",
-            "num_tasks": 2, "seeds": seeds, "grid_points": 1, "padding": padding, "devices": 2, "budget": 4,
-            "chunk": 2, "start_task": 0, "members": [f"comps seed {s}" for s in range(seeds + padding)], **changes}
+    fields = dict(program="comps", family="cheetah_vel", sequence="non-stationary", num_tasks=2, tasks=(),
+                  seeds=seeds, grid_points=1, padding=padding, devices=2, budget=4, chunk=2, start_task=0,
+                  members=tuple(f"comps seed {s}" for s in range(seeds + padding)))
+    return events.Start(**{**fields, **changes})
 
 
 def test_console_turns_runner_events_into_lines(console, tmp_path):
     lines = []
     show = console.Console(lines.append, str(tmp_path), interval=0.0)
     show(_start_event(family="point_goal", sequence="stationary", seeds=3, padding=1, chunk=1))
-    show({"event": "iteration", "program": "comps", "member": 1, "task": 0, "iteration": 3, "success_rate": 0.5,
-          "mean_return": -3.0, "value_ev": 0.8})
-    show({"event": "meta_step", "program": "comps", "member": 1, "task": 0, "meta_step": 7, "meta_steps": 125,
-          "bc_loss": 1.25})
-    show({"event": "compress_iteration", "program": "comps", "member": 0, "task": 0, "compress_iteration": 2,
-          "compress_iterations": 15, "kl": 0.5})
+    show(events.Iteration(program="comps", member=1, task=0, iteration=3, success_rate=0.5, mean_return=-3.0,
+                          value_ev=0.8))
+    show(events.MetaStep(program="comps", member=1, task=0, meta_step=7, meta_steps=125, bc_loss=1.25))
+    show(events.CompressIteration(program="comps", member=0, task=0, compress_iteration=2, compress_iterations=15,
+                                  kl=0.5))
     metrics = _chunk_metrics(3, 1, 4, nonfinite_at=(2, 0, 1))
-    show({"event": "chunk", "program": "comps", "entry": "comps", "start": 0, "stop": 1, "num_tasks": 2,
-          "seeds": [0, 1, 2], "metrics": metrics, "per_task": metrics})
-    show({"event": "warning", "message": "checkpoint step 2 cannot be read"})
-    show({"event": "done", "program": "comps", "seconds": 75.0})
+    show(events.Chunk(program="comps", entry="comps", start=0, stop=1, num_tasks=2, seeds=(0, 1, 2), metrics=metrics,
+                      per_task=metrics))
+    show(events.Warned(message="checkpoint step 2 cannot be read"))
+    show(events.Done(program="comps", seconds=75.0))
     assert lines[0] == ("[comps] point_goal stationary, 2 tasks, 3 seeds (+1 to fill the devices, not reported) on 2 "
                         "device(s), budget 4, chunks of 1")
     assert lines[1].startswith("[comps] task 1/2 iteration 3 success 0.12 critic EV 0.80")
@@ -58,18 +59,16 @@ def test_console_says_what_compiles_and_evaluates(console, tmp_path):
     show = console.Console(lines.append, str(tmp_path), interval=0.0)
     show(_start_event())
     where = {"program": "comps", "family": "cheetah_vel", "method": "comps"}
-    show({"event": "compiling", "part": "learn", "what": "learning", **where})
-    show({"event": "still_compiling", "part": "learn", "what": "learning", "seconds": 20.5, **where})
-    show({"event": "compiled", "part": "learn", "what": "learning", "seconds": 95.0, "trace_seconds": 12.0,
-          **where})
-    show({"event": "compiling", "part": "measure", "what": "held-out", **where})
-    show({"event": "compiled", "part": "measure", "what": "held-out", "seconds": 13.5, "trace_seconds": 12.0,
-          "cached": True, **where})
-    show({"event": "evaluating", "program": "comps", "after_tasks": 0, "learnt": 0})
-    show({"event": "heldout_iteration", "program": "comps", "member": 1, "heldout_task": 7, "heldout_iteration": 3,
-          "success_rate": 0.0, "mean_return": -1.0})
-    show({"event": "evaluated", "program": "comps", "after_tasks": 0, "seconds": 42.0})
-    show({"event": "evaluating", "program": "comps", "after_tasks": 2, "learnt": 2, "adapts": False})
+    show(events.Compiling(part="learn", what="learning", **where))
+    show(events.StillCompiling(part="learn", what="learning", seconds=20.5, **where))
+    show(events.Compiled(part="learn", what="learning", seconds=95.0, trace_seconds=12.0, **where))
+    show(events.Compiling(part="measure", what="held-out", **where))
+    show(events.Compiled(part="measure", what="held-out", seconds=13.5, trace_seconds=12.0, cached=True, **where))
+    show(events.Evaluating(program="comps", after_tasks=0, learnt=0))
+    show(events.HeldoutIteration(program="comps", member=1, heldout_task=7, heldout_iteration=3, success_rate=0.0,
+                                 mean_return=-1.0))
+    show(events.Evaluated(program="comps", after_tasks=0, seconds=42.0))
+    show(events.Evaluating(program="comps", after_tasks=2, learnt=2, adapts=False))
     assert lines[1] == "[comps] compiling the learning program (cheetah_vel, comps)..."
     assert lines[2] == "[comps] still compiling the learning program: 0m20s"
     assert lines[3] == "[comps] learning program ready in 1m35s (tracing 12s)"
@@ -87,8 +86,8 @@ def test_console_shows_the_meta_steps_health(console, tmp_path):
     lines = []
     show = console.Console(lines.append, str(tmp_path), interval=0.0)
     show(_start_event(num_tasks=3, devices=1, chunk=1, start_task=1))
-    show({"event": "meta_step", "program": "comps", "member": 0, "task": 1, "meta_step": 3, "meta_steps": 125,
-          "bc_loss": -3.0, "value_l2": 0.25, "value_ev": 0.8, "adv_abs": 0.4, "rho": 0.5, "inner_gain": 0.125})
+    show(events.MetaStep(program="comps", member=0, task=1, meta_step=3, meta_steps=125, bc_loss=-3.0, value_l2=0.25,
+                         value_ev=0.8, adv_abs=0.4, rho=0.5, inner_gain=0.125))
     assert lines[-1].startswith("[comps] task 2/3 meta-training step 3/125 bc loss -3.000 value l2 0.25 EV 0.80 "
                                 "|A| 0.4 rho 0.50 inner gain +0.125")
     # After task 2 (slot 1): slots 0 and 1 seen, slot 2 not (NaN); two seeds.
@@ -100,8 +99,8 @@ def test_console_shows_the_meta_steps_health(console, tmp_path):
     steps = meta.SlotStats(*[np.zeros((2, 1, 5), np.float32)] * fields)
     chunk = _chunk_metrics(2, 1, 4)
     chunk = chunk._replace(task=chunk.task._replace(meta=meta.MetaMetrics(steps, start, end)))
-    show({"event": "chunk", "program": "comps", "entry": "comps", "start": 1, "stop": 2, "num_tasks": 3,
-          "seeds": [0, 1], "metrics": chunk, "per_task": chunk})
+    show(events.Chunk(program="comps", entry="comps", start=1, stop=2, num_tasks=3, seeds=(0, 1), metrics=chunk,
+                      per_task=chunk))
     assert lines[-1] == ("[comps] task 2/3 meta phase: heads' EV on returns 0.40 -> 0.80 (newest head 0.20 -> 0.90), "
                          "bias/std +0.20, mean rho 0.60 (oldest task 0.40), |A| 0.5, bc loss 0.500, inner gain +0.1 "
                          "(newest task -0.05)")
@@ -117,14 +116,13 @@ def test_console_shows_the_learnt_tasks_success_and_forgetting(console, tmp_path
     per_task = metrics._replace(learnt=when)
     now = continual.Evaluation(np.zeros((2, 2), np.float32), np.array([[0.4, 0.6], [0.8, 0.6]], np.float32),
                                np.ones((2, 2), bool))
-    show({"event": "chunk", "program": "comps", "entry": "comps", "start": 1, "stop": 2, "num_tasks": 4,
-          "seeds": [0, 1], "metrics": per_task, "per_task": per_task, "learnt_tasks": now})
+    show(events.Chunk(program="comps", entry="comps", start=1, stop=2, num_tasks=4, seeds=(0, 1), metrics=per_task,
+                      per_task=per_task, learnt_tasks=now))
     assert lines[-1] == ("[comps] after task 2/4: success on the 2 tasks learnt 0.60, right after learning each 0.75 "
                          "(forgetting +0.15)")
     # With --learnt-eval end nothing was evaluated after this chunk: no line.
-    show({"event": "chunk", "program": "comps", "entry": "comps", "start": 1, "stop": 2, "num_tasks": 4,
-          "seeds": [0, 1], "metrics": per_task, "per_task": per_task,
-          "learnt_tasks": now._replace(valid=np.zeros((2, 2), bool))})
+    show(events.Chunk(program="comps", entry="comps", start=1, stop=2, num_tasks=4, seeds=(0, 1), metrics=per_task,
+                      per_task=per_task, learnt_tasks=now._replace(valid=np.zeros((2, 2), bool))))
     assert not lines[-1].startswith("[comps] after task")
 
 
@@ -150,8 +148,8 @@ def test_console_writes_the_scalars_to_tensorboard(console, tmp_path):
 
     show = console.Console(lambda line: None, str(tmp_path), tensorboard=True)
     metrics = _varied_chunk()
-    show({"event": "chunk", "program": "ppo_tl", "entry": "ppo_tl", "start": 0, "stop": 2, "num_tasks": 2,
-          "seeds": [0, 1], "metrics": metrics, "per_task": metrics})
+    show(events.Chunk(program="ppo_tl", entry="ppo_tl", start=0, stop=2, num_tasks=2, seeds=(0, 1), metrics=metrics,
+                      per_task=metrics))
     show.close()
     [path] = (tmp_path / "tensorboard" / "ppo_tl").glob("events.out.tfevents*")
     logged = tensorboard_file.scalars(path)
@@ -185,8 +183,8 @@ def test_console_logs_the_same_scalars_to_an_offline_wandb_run(console, tmp_path
         monkeypatch.setenv(var, str(tmp_path / "wandb-home"))
     show = console.Console(lambda line: None, str(tmp_path), wandb="jcomps-test", wandb_group="study")
     metrics = _varied_chunk()
-    show({"event": "chunk", "program": "ppo_tl", "entry": "ppo_tl", "start": 0, "stop": 2, "num_tasks": 2,
-          "seeds": [0, 1], "metrics": metrics, "per_task": metrics})
+    show(events.Chunk(program="ppo_tl", entry="ppo_tl", start=0, stop=2, num_tasks=2, seeds=(0, 1), metrics=metrics,
+                      per_task=metrics))
     show.close()
     [path] = (tmp_path / "wandb").glob("offline-run-*/run-*.wandb")
     rows = wandb_file.history(path)

@@ -24,7 +24,7 @@ import time
 import numpy as np
 import pytest
 
-from jcomps.runner import distributed, hostdevices
+from jcomps.runner import distributed, events, hostdevices
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCRIPT = os.path.join(ROOT, "experiments", "run_sequence.py")
@@ -207,26 +207,54 @@ def test_relay_hands_every_members_progress_to_process_zero(monkeypatch):
     store, shown = _Store(), []
     relay = distributed.Relay(interval=3600, client=store)
     merger = distributed.Merger(shown.append, num_processes=2, interval=3600, client=store)
-    merger({"event": "start", "program": "p"})  # process 0's own events pass straight through
-    relay({"event": "start", "program": "p"})  # process 0 has the runner's events: not relayed
+    start = start_event()
+    merger(start)  # process 0's own events pass straight through
+    relay(start)  # process 0 has the runner's events: not relayed
+    iteration = lambda i: events.Iteration(program="p", member=1, task=0, iteration=i, success_rate=0.5,  # noqa: E731
+                                           mean_return=-1.0, value_ev=0.5)
     for i in range(3):
-        relay({"event": "iteration", "program": "p", "member": 1, "task": 0, "iteration": i})
-    relay({"event": "heldout_iteration", "program": "p", "member": 1, "heldout_task": 2, "heldout_iteration": 4})
+        relay(iteration(i))
+    held = events.HeldoutIteration(program="p", member=1, heldout_task=2, heldout_iteration=4, success_rate=0.0,
+                                   mean_return=-2.0)
+    relay(held)
     merger.poll()  # nothing published yet
     relay.publish()
     merger.poll()
-    merger.poll()  # each event once
-    assert [(e["event"], e.get("iteration")) for e in shown] == [("start", None), ("iteration", 2),
-                                                               ("heldout_iteration", None)]
-    relay({"event": "iteration", "program": "p", "member": 1, "task": 0, "iteration": 3})
+    merger.poll()  # each event once, the newest of each kind per member, typed again
+    assert shown[0] is start and shown[1:] == [iteration(2), held]
+    relay(iteration(3))
+    relay(events.Iteration(program="p", member=2, task=0, iteration=0, success_rate=0.0, mean_return=-1.0))
     relay.close()
     merger.close()
-    assert shown[-1] == {"event": "iteration", "program": "p", "member": 1, "task": 0, "iteration": 3}
+    assert shown[-2] == iteration(3)
+    assert shown[-1].member == 2 and np.isnan(shown[-1].value_ev)  # a default crosses too (NaN: no critic)
+
+
+def test_member_events_come_from_the_compiled_programs_progress_and_cross_as_json():
+    metrics = {"phase": "iteration", "member": np.int32(2), "task": np.int32(1), "iteration": np.int32(7),
+               "success_rate": np.float32(0.25), "mean_return": np.float32(-3.5), "value_ev": np.float32(0.5),
+               "a_method_own_metric": np.float32(1.0)}
+    event = events.member_event("comps", metrics)
+    assert event == events.Iteration("comps", member=2, task=1, iteration=7, success_rate=0.25, mean_return=-3.5,
+                                     value_ev=0.5)
+    assert type(event.iteration) is int and type(event.success_rate) is float
+    assert events.from_json(json.loads(json.dumps(events.to_json(event)))) == event
+    # A phase without a class of its own (a method's, docs/extending.md) keeps its metrics.
+    own = events.member_event("es_tl", {"phase": "es_generation", "member": np.int32(0), "fitness": np.float32(2.0)})
+    assert own == events.MemberProgress("es_tl", member=0, phase="es_generation", metrics={"fitness": 2.0})
+    assert events.from_json(json.loads(json.dumps(events.to_json(own)))) == own
+    with pytest.raises(TypeError, match="only member events cross processes"):
+        events.to_json(start_event())
+
+
+def start_event():
+    return events.Start(program="p", family="point_goal", sequence="non-stationary", num_tasks=1, tasks=(), seeds=1,
+                        grid_points=1, padding=0, devices=1, budget=3, chunk=1, start_task=0, members=("p seed 0",))
 
 
 _RELAY_CHILD = r"""
 import sys, time
-from jcomps.runner import distributed, hostdevices
+from jcomps.runner import distributed, events, hostdevices
 hostdevices.configure(1)
 pid, port = int(sys.argv[1]), sys.argv[2]
 distributed.start(distributed.Cluster(2, pid, f"localhost:{port}", coordinator_timeout=60, heartbeat_timeout=30))
@@ -234,7 +262,7 @@ shown = []
 receiver = distributed.progress_receiver(shown.append, interval=0.2)
 if pid == 1:
     for i in range(5):
-        receiver({"event": "iteration", "program": "p", "member": 3, "task": 0, "iteration": i})
+        receiver(events.Iteration(program="p", member=3, task=0, iteration=i, success_rate=0.5, mean_return=-1.0))
     receiver.close()  # publishes what is left
 distributed.barrier("published")
 if pid == 0:
@@ -251,7 +279,8 @@ def test_relay_through_the_runtime():
     outputs = _finish(procs)
     for p, (_, err) in zip(procs, outputs):
         assert p.returncode == 0, err[-3000:]
-    assert "SHOWN [{'event': 'iteration', 'program': 'p', 'member': 3, 'task': 0, 'iteration': 4}]" in outputs[0][0]
+    assert ("SHOWN [Iteration(program='p', member=3, task=0, iteration=4, success_rate=0.5, mean_return=-1.0, "
+            "value_ev=nan)]") in outputs[0][0]
 
 
 # --- real runs of two processes --------------------------------------------------------------------------------

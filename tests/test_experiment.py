@@ -13,7 +13,7 @@ import pytest
 
 from jcomps import continual
 from jcomps.analysis import report
-from jcomps.runner import checkpoint, experiment, results, rundir
+from jcomps.runner import checkpoint, events, experiment, results, rundir
 from jcomps.runner.files import RunError
 
 
@@ -119,11 +119,11 @@ def test_unreadable_checkpoint_falls_back_to_the_one_before(runner, full_run, fu
     for path in (out / "checkpoints" / "ppo_tl" / "2").rglob("*"):
         if path.is_file():
             path.write_bytes(b"garbage")
-    events = []
+    shown = []
     experiment.run_method(str(out), "ppo_tl", described, resume=True,
-                          progress_fn=events.append, programs=runner.PROGRAMS)
-    assert any(e["event"] == "warning" and "cannot be read" in e["message"] for e in events)
-    assert any(e["event"] == "resumed" and e["step"] == 1 for e in events)
+                          progress_fn=shown.append, programs=runner.PROGRAMS)
+    assert any(isinstance(e, events.Warned) and "cannot be read" in e.message for e in shown)
+    assert any(isinstance(e, events.Resumed) and e.step == 1 for e in shown)
     a, b = _raw(full_run, "ppo_tl"), _raw(out, "ppo_tl")
     for key in a:
         np.testing.assert_array_equal(a[key], b[key], err_msg=key)

@@ -1,5 +1,5 @@
 """What the runner shows and logs: progress lines, per-task results, TensorBoard and W&B, from the events of
-``jcomps.runner.experiment`` (its one ``progress_fn`` callback; every kind of event: ``experiment.EVENTS``). The
+``jcomps.runner.experiment`` (its one ``progress_fn`` callback; every kind of event: ``jcomps.runner.events``). The
 edge of the package, above the report (tests/test_layout.py): the scripts in ``experiments/`` use it, and nothing
 else under ``src/jcomps`` prints.
 """
@@ -14,7 +14,7 @@ import numpy as np
 
 from jcomps.analysis import continual_metrics as cm
 from jcomps.analysis import statistics
-from jcomps.runner import experiment
+from jcomps.runner import events
 from jcomps.runner.files import RunError
 
 
@@ -104,6 +104,21 @@ class Progress:
                                 f"{int(steps)} kl {float(np.nanmean(self.meta_loss)):.4f}{self._behind()} | "
                                 f"elapsed {clock(time.time() - self.start)} remaining {self._remaining_text()}")
 
+    # The member events (``jcomps.runner.events``), each to its record.
+    def iteration(self, event: events.Iteration):
+        self.record_iteration(event.member, event.task, event.iteration, event.success_rate, float(event.value_ev))
+
+    def meta_step(self, event: events.MetaStep):
+        health = (event.value_l2, event.value_ev, event.adv_abs, event.rho, event.inner_gain)
+        self.record_meta_step(event.member, event.task, event.meta_step, event.meta_steps, event.bc_loss,
+                              None if event.value_ev is None else tuple(np.nan if h is None else h for h in health))
+
+    def compress_iteration(self, event: events.CompressIteration):
+        self.record_compress(event.member, event.task, event.compress_iteration, event.compress_iterations, event.kl)
+
+    def heldout_iteration(self, event: events.HeldoutIteration):
+        self.record_heldout(event.member, event.heldout_task, event.heldout_iteration)
+
     def _throttled(self, line: Callable[[], str]):
         now = time.time()
         if now - self.last >= self.interval:
@@ -148,7 +163,7 @@ class Console:
     program), every task's iterations-to-success, non-finite warnings and checkpoint warnings through ``log``; with
     ``tensorboard``, also writes TensorBoard logs under ``out/tensorboard/<entry>``, with ``wandb`` (a project) the
     same scalars to Weights & Biases (``WandbLogger``; ``close`` finishes its runs). Each kind of event
-    (``jcomps.runner.experiment.EVENTS``) has its handler; kinds it does not show are ignored."""
+    (``jcomps.runner.events.EVENTS``) has its handler; kinds it does not show are ignored."""
 
     def __init__(self, log: Callable[[str], None] = print, out: Optional[str] = None, tensorboard: bool = False,
                  interval: float = 10.0, wandb: Optional[str] = None, wandb_group: Optional[str] = None):
@@ -159,103 +174,77 @@ class Console:
             _tensorboard_writer_class()  # fail before anything runs if tensorboardX is missing
         self.wandb = WandbLogger(wandb, out, wandb_group) if wandb else None
         self.handlers = {
-            experiment.START: self._start, experiment.COMPILING: self._compiling,
-            experiment.STILL_COMPILING: self._still_compiling, experiment.COMPILED: self._compiled,
-            experiment.RESUMED: self._resumed, experiment.EVALUATING: self._evaluating,
-            experiment.EVALUATED: self._evaluated, experiment.WARNING: self._warning, experiment.CHUNK: self._chunk,
-            experiment.DONE: self._done, experiment.SKIPPED: self._skipped,
+            events.Start: self._start, events.Compiling: self._compiling,
+            events.StillCompiling: self._still_compiling, events.Compiled: self._compiled,
+            events.Resumed: self._resumed, events.Evaluating: self._evaluating, events.Evaluated: self._evaluated,
+            events.Warned: self._warning, events.Chunk: self._chunk, events.Done: self._done,
+            events.Skipped: self._skipped,
         }
         # Progress inside a program's chunk, shown by its ``Progress`` once the program has started.
         self.member_handlers = {
-            experiment.ITERATION: self._iteration, experiment.META_STEP: self._meta_step,
-            experiment.COMPRESS_ITERATION: self._compress_iteration,
-            experiment.HELDOUT_ITERATION: self._heldout_iteration,
+            events.Iteration: Progress.iteration, events.MetaStep: Progress.meta_step,
+            events.CompressIteration: Progress.compress_iteration, events.HeldoutIteration: Progress.heldout_iteration,
         }
 
-    def __call__(self, event: dict):
-        kind, name = event["event"], event.get("program")
+    def __call__(self, event):
+        kind = type(event)
         if kind in self.handlers:
-            self.handlers[kind](name, event)
-        elif kind in self.member_handlers and name in self.progress:
-            self.member_handlers[kind](self.progress[name], event)
+            self.handlers[kind](event)
+        elif kind in self.member_handlers and event.program in self.progress:
+            self.member_handlers[kind](self.progress[event.program], event)
 
-    def _start(self, name, event):
-        extra = f" (+{event['padding']} to fill the devices, not reported)" if event["padding"] else ""
-        points = event["grid_points"]
-        grid_text = f" × {points} grid points = {points * event['seeds']} members" if points > 1 else ""
-        chosen = event.get("tasks") or []
-        order = (f"tasks {' '.join(chosen)}" + (" (shuffled per seed)" if event["sequence"] == "stationary" else "")
-                 if chosen else f"{event['sequence']}, {event['num_tasks']} tasks")
-        self.log(f"[{name}] {event['family']} {order}, {event['seeds']} "
-                 f"seeds{grid_text}{extra} on {event['devices']} device(s), budget {event['budget']}, chunks of "
-                 f"{event['chunk']}")
-        self.progress[name] = Progress(name, len(event["members"]), event["num_tasks"], event["start_task"],
-                                       self.log, self.interval, event["members"] if points > 1 else None)
+    def _start(self, event: events.Start):
+        extra = f" (+{event.padding} to fill the devices, not reported)" if event.padding else ""
+        points = event.grid_points
+        grid_text = f" × {points} grid points = {points * event.seeds} members" if points > 1 else ""
+        order = (f"tasks {' '.join(event.tasks)}" + (" (shuffled per seed)" if event.sequence == "stationary" else "")
+                 if event.tasks else f"{event.sequence}, {event.num_tasks} tasks")
+        self.log(f"[{event.program}] {event.family} {order}, {event.seeds} seeds{grid_text}{extra} on "
+                 f"{event.devices} device(s), budget {event.budget}, chunks of {event.chunk}")
+        self.progress[event.program] = Progress(event.program, len(event.members), event.num_tasks, event.start_task,
+                                                self.log, self.interval, list(event.members) if points > 1 else None)
 
-    def _compiling(self, name, event):
-        after = " (while the first task trains)" if event["part"] in ("evaluate_task", "measure") else ""
-        self.log(f"[{name}] compiling the {event['what']} program ({event['family']}, {event['method']}){after}...")
+    def _compiling(self, event: events.Compiling):
+        after = " (while the first task trains)" if event.part in ("evaluate_task", "measure") else ""
+        self.log(f"[{event.program}] compiling the {event.what} program ({event.family}, {event.method}){after}...")
 
-    def _still_compiling(self, name, event):
-        self.log(f"[{name}] still compiling the {event['what']} program: {clock(event['seconds'])}")
+    def _still_compiling(self, event: events.StillCompiling):
+        self.log(f"[{event.program}] still compiling the {event.what} program: {clock(event.seconds)}")
 
-    def _compiled(self, name, event):
-        cached = "; from the compile cache" if event.get("cached") else ""
-        self.log(f"[{name}] {event['what']} program ready in {clock(event['seconds'])} (tracing "
-                 f"{event['trace_seconds']:.0f}s{cached})")
-        if event["part"] == "learn" and name in self.progress:
-            self.progress[name].restart_clock()
+    def _compiled(self, event: events.Compiled):
+        cached = "; from the compile cache" if event.cached else ""
+        self.log(f"[{event.program}] {event.what} program ready in {clock(event.seconds)} (tracing "
+                 f"{event.trace_seconds:.0f}s{cached})")
+        if event.part == "learn" and event.program in self.progress:
+            self.progress[event.program].restart_clock()
 
-    def _resumed(self, name, event):
-        self.log(f"[{name}] resumed from checkpoint {event['step']}: {event['tasks_done']}/{event['num_tasks']} "
+    def _resumed(self, event: events.Resumed):
+        self.log(f"[{event.program}] resumed from checkpoint {event.step}: {event.tasks_done}/{event.num_tasks} "
                  "tasks done")
-        if name in self.progress:
-            self.progress[name].resumed(event["tasks_done"])
+        if event.program in self.progress:
+            self.progress[event.program].resumed(event.tasks_done)
 
-    def _evaluating(self, name, event):
-        after = event["after_tasks"]
-        what = "the initial policies" if after == 0 else f"the policies after task {after}"
-        test = "held-out meta-test" if event.get("adapts", True) else "held-out zero-shot return"
-        self.log(f"[{name}] {test}{' and learnt tasks' if event['learnt'] else ''} of {what}...")
-        if name in self.progress:
-            self.progress[name].heldout_begin()
+    def _evaluating(self, event: events.Evaluating):
+        what = "the initial policies" if event.after_tasks == 0 else f"the policies after task {event.after_tasks}"
+        test = "held-out meta-test" if event.adapts else "held-out zero-shot return"
+        self.log(f"[{event.program}] {test}{' and learnt tasks' if event.learnt else ''} of {what}...")
+        if event.program in self.progress:
+            self.progress[event.program].heldout_begin()
 
-    def _evaluated(self, name, event):
-        self.log(f"[{name}] evaluations after {event['after_tasks']} task(s) done in {clock(event['seconds'])}")
+    def _evaluated(self, event: events.Evaluated):
+        self.log(f"[{event.program}] evaluations after {event.after_tasks} task(s) done in {clock(event.seconds)}")
 
-    def _warning(self, name, event):
-        self.log(f"warning: {event['message']}")
+    def _warning(self, event: events.Warned):
+        self.log(f"warning: {event.message}")
 
-    @staticmethod
-    def _iteration(progress: Progress, event):
-        progress.record_iteration(event["member"], event["task"], event["iteration"], event["success_rate"],
-                                  float(event.get("value_ev", np.nan)))
-
-    @staticmethod
-    def _meta_step(progress: Progress, event):
-        keys = ("value_l2", "value_ev", "adv_abs", "rho", "inner_gain")
-        health = tuple(event[k] for k in keys) if "value_ev" in event else None
-        progress.record_meta_step(event["member"], event["task"], event["meta_step"], event["meta_steps"],
-                                  event["bc_loss"], health)
-
-    @staticmethod
-    def _compress_iteration(progress: Progress, event):
-        progress.record_compress(event["member"], event["task"], event["compress_iteration"],
-                                 event["compress_iterations"], event["kl"])
-
-    @staticmethod
-    def _heldout_iteration(progress: Progress, event):
-        progress.record_heldout(event["member"], event["heldout_task"], event["heldout_iteration"])
-
-    def _chunk(self, name, event):
-        entry, start, stop = event["entry"], event["start"], event["stop"]
-        _report_chunk(self.log, entry, event["metrics"], start, stop, event["num_tasks"])
-        learnt = event.get("learnt_tasks")
+    def _chunk(self, event: events.Chunk):
+        entry, start, stop, learnt = event.entry, event.start, event.stop, event.learnt_tasks
+        _report_chunk(self.log, entry, event.metrics, start, stop, event.num_tasks)
         if learnt is not None and np.any(learnt.valid):
-            self.log(f"[{entry}] after task {stop}/{event['num_tasks']}: {learnt_text(event['per_task'], learnt)}")
-        _check_finite(self.log, entry, event["seeds"], event["metrics"].task.per_iteration.nonfinite, start)
+            self.log(f"[{entry}] after task {stop}/{event.num_tasks}: {learnt_text(event.per_task, learnt)}")
+        _check_finite(self.log, entry, event.seeds, event.metrics.task.per_iteration.nonfinite, start)
         if self.tensorboard or self.wandb:
-            scalars = chunk_scalars(event["per_task"], event["start"], event["stop"], learnt)
+            scalars = chunk_scalars(event.per_task, start, stop, learnt)
             if self.tensorboard:
                 if entry not in self.writers:
                     self.writers[entry] = _tensorboard_writer_class()(os.path.join(self.out, "tensorboard", entry))
@@ -273,12 +262,12 @@ class Console:
         if self.wandb:
             self.wandb.close()
 
-    def _done(self, name, event):
-        self.progress.pop(name, None)
-        self.log(f"[{name}] done in {clock(event['seconds'])}")
+    def _done(self, event: events.Done):
+        self.progress.pop(event.program, None)
+        self.log(f"[{event.program}] done in {clock(event.seconds)}")
 
-    def _skipped(self, name, event):
-        self.log(f"[{name}] already finished; skipping")
+    def _skipped(self, event: events.Skipped):
+        self.log(f"[{event.program}] already finished; skipping")
 
 
 def _tensorboard_writer_class():

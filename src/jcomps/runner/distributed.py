@@ -388,13 +388,13 @@ class Relay:
     """The ``progress_fn`` of a process other than 0: keeps the newest event of each kind per member and program,
     and publishes them to the runtime's key-value store at most every ``interval`` seconds (from a thread), so
     that process 0 (``Merger``) shows every member's progress. Relayed: the members' progress inside the compiled
-    programs (the ``jcomps.progress`` phases); the runner's own events, the same on every process, are dropped
-    (process 0 has them). ``close`` publishes what is left."""
+    programs (``jcomps.runner.events.MEMBER_EVENTS``, as JSON); the runner's own events, the same on every
+    process, are dropped (process 0 has them). ``close`` publishes what is left."""
 
     def __init__(self, interval: float = 2.0, client=None):
-        from jcomps import progress  # imports JAX, which this module leaves until a process has joined
+        from jcomps.runner import events  # imports JAX, which this module leaves until a process has joined
 
-        self.relayed = progress.PHASES
+        self.events = events
         self.interval = interval
         self.client = client if client is not None else _client()
         self.key = f"{_PREFIX}/{_process_index()}"
@@ -406,13 +406,13 @@ class Relay:
         self.thread = threading.Thread(target=self._loop, daemon=True)
         self.thread.start()
 
-    def __call__(self, event: dict):
-        if event.get("event") not in self.relayed:
+    def __call__(self, event):
+        if not isinstance(event, self.events.MEMBER_EVENTS):
             return
         with self.lock:
             self.sequence += 1
-            key = (event.get("program"), event["event"], event.get("member"), event.get("heldout_task"))
-            self.latest[key] = {**event, "_sequence": self.sequence}
+            key = (event.program, event.kind, event.member, getattr(event, "heldout_task", None))
+            self.latest[key] = {**self.events.to_json(event), "_sequence": self.sequence}
             self.dirty = True
 
     def _loop(self):
@@ -441,8 +441,11 @@ class Merger:
     events and hands those it has not seen to ``progress_fn``, together with process 0's own events (``__call__``),
     under one lock, so the progress lines cover every member."""
 
-    def __init__(self, progress_fn: Callable[[dict], None], num_processes: int, interval: float = 2.0,
+    def __init__(self, progress_fn: Callable[[object], None], num_processes: int, interval: float = 2.0,
                  client=None):
+        from jcomps.runner import events  # as Relay's
+
+        self.events = events
         self.progress_fn, self.interval = progress_fn, interval
         self.client = client if client is not None else _client()
         self.keys = [f"{_PREFIX}/{p}" for p in range(1, num_processes)]
@@ -452,7 +455,7 @@ class Merger:
         self.thread = threading.Thread(target=self._loop, daemon=True)
         self.thread.start()
 
-    def __call__(self, event: dict):
+    def __call__(self, event):
         with self.lock:
             self.progress_fn(event)
 
@@ -466,12 +469,13 @@ class Merger:
                 payload = self.client.key_value_try_get(key)
             except Exception:  # noqa: BLE001 - nothing published yet (or the peer is gone: the host loop says so)
                 continue
-            events = sorted(json.loads(payload), key=lambda e: e["_sequence"])
+            published = sorted(json.loads(payload), key=lambda e: e["_sequence"])
             with self.lock:
-                for event in events:
+                for event in published:
                     if event["_sequence"] > self.seen[key]:
-                        self.progress_fn({k: v for k, v in event.items() if k != "_sequence"})
-                self.seen[key] = max([self.seen[key]] + [e["_sequence"] for e in events])
+                        self.progress_fn(self.events.from_json({k: v for k, v in event.items()
+                                                                if k != "_sequence"}))
+                self.seen[key] = max([self.seen[key]] + [e["_sequence"] for e in published])
 
     def close(self):
         self.done.set()
@@ -491,7 +495,7 @@ def _process_index() -> int:
     return jax.process_index()
 
 
-def progress_receiver(progress_fn: Callable[[dict], None], interval: float = 2.0):
+def progress_receiver(progress_fn: Callable[[object], None], interval: float = 2.0):
     """The receiver this process hands the runner: ``progress_fn`` itself for one process; on process 0 of several
     a ``Merger`` around it, on the others a ``Relay`` (``progress_fn`` unused). ``close_receiver`` when the run
     ends."""

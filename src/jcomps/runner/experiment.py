@@ -18,8 +18,8 @@ through its compiled programs (``jcomps.runner.programs``): the host loops over 
 ``evaluate_task``), measures after the chunk (``measure``) and checkpoints; since every chunk runs through the
 same programs from the restored state, a resumed run gives per-task results identical to an uninterrupted one.
 
-Nothing here prints: the outside world gets events through one ``progress_fn`` callback (``ProgressReceiver``;
-``jcomps.console`` turns them into progress lines and TensorBoard logs). Compiled programs live in a
+Nothing here prints: the outside world gets typed events (``jcomps.runner.events``) through one ``progress_fn``
+callback (``ProgressReceiver``; ``jcomps.console`` turns them into progress lines and TensorBoard logs). Compiled programs live in a
 ``Programs`` cache owned by the caller, never in a module-level registry, so two runs never share progress.
 ``RunError`` (``jcomps.runner.files``) is what ``run`` raises for a run directory it cannot make or resume.
 """
@@ -34,8 +34,8 @@ from typing import Callable, Optional
 import jax
 import numpy as np
 
-from jcomps import continual, envs, methods, progress
-from jcomps.runner import distributed, results
+from jcomps import continual, envs, methods
+from jcomps.runner import distributed, events, results
 from jcomps.runner import grid as grids
 from jcomps.runner.checkpoint import Checkpoints, record, unflatten
 from jcomps.runner.description import RunDescription
@@ -44,61 +44,12 @@ from jcomps.runner.members import heldout_keys, layout, method_keys, num_devices
 from jcomps.runner.programs import PART_NAMES, Programs
 from jcomps.runner.rundir import open_run_dir
 
-# The kinds of event the runner hands its ``ProgressReceiver`` (``event["event"]``); ``ProgressReceiver`` says
-# what each carries. The runner's own:
-START = "start"
-COMPILING = "compiling"
-STILL_COMPILING = "still_compiling"
-COMPILED = "compiled"
-RESUMED = "resumed"
-WARNING = "warning"
-EVALUATING = "evaluating"
-EVALUATED = "evaluated"
-CHUNK = "chunk"
-DONE = "done"
-SKIPPED = "skipped"
-# and the compiled programs' progress, passed on with its phase as the kind (``jcomps.progress``):
-ITERATION, META_STEP, COMPRESS_ITERATION = progress.ITERATION, progress.META_STEP, progress.COMPRESS_ITERATION
-HELDOUT_ITERATION, TASK = progress.HELDOUT_ITERATION, progress.TASK
-EVENTS = (START, COMPILING, STILL_COMPILING, COMPILED, RESUMED, WARNING, EVALUATING, EVALUATED, CHUNK, DONE, SKIPPED,
-          *progress.PHASES)
-"""Every kind of event."""
-
-ProgressReceiver = Callable[[dict], None]
-"""The runner's one callback to the outside world (brax's ``progress_fn``), called on the host with an event dict;
-``event["event"]`` says which (``EVENTS``):
-
-- ``START``: a program begins, before anything compiles (``program``, ``family``, ``sequence``, ``num_tasks``,
-  ``tasks`` (the chosen tasks, empty for the family's list),
-  ``seeds``, ``grid_points``, ``padding``, ``devices``, ``budget``, ``chunk``, ``start_task``: 0, ``members``:
-  each member's name);
-- ``COMPILING`` / ``COMPILED``: one of its programs (``jcomps.runner.programs.PARTS``) is being compiled / is ready
-  (``program``, ``family``, ``method``, ``part``, ``what``: its name in words; ``COMPILED`` adds ``seconds``,
-  ``trace_seconds`` and ``cached``: whether it came from the persistent compile cache, ``jcomps.runner.compile_cache``);
-  a compile still running says so every ``jcomps.runner.programs.HEARTBEAT_SECONDS`` with ``STILL_COMPILING`` (the same
-  fields and the ``seconds`` so far); ``learn`` compiles first and alone, the evaluation programs while the first
-  task trains;
-- ``RESUMED``: it continues from a checkpoint (``program``, ``step``, ``tasks_done``, ``num_tasks``);
-- ``EVALUATING`` / ``EVALUATED``: the held-out meta-test and learnt-task evaluation after ``after_tasks`` tasks
-  (0: the initial policies, measured after the first chunk) begins (``learnt``: how many learnt tasks it
-  evaluates; ``adapts``: whether the meta-test adapts, or measures the zero-shot return only) / ends (``seconds``); in
-  between, ``HELDOUT_ITERATION`` events give each member's adaptation progress (``member``, ``heldout_task``,
-  ``heldout_iteration``, ``success_rate``, ``mean_return``);
-- ``WARNING``: something was set aside (``message``), e.g. an unreadable checkpoint;
-- ``ITERATION`` / ``META_STEP``: a member's progress inside a chunk (``program``, ``member``, ``task`` and the
-  ``jcomps.progress`` metrics: ``iteration``, ``success_rate``, ``mean_return``, ``value_ev`` / ``meta_step``,
-  ``meta_steps``, ``bc_loss``, ``value_l2``, ``value_ev``, ``adv_abs``, ``rho``, ``inner_gain``);
-- ``COMPRESS_ITERATION``: the same for a compress phase of ``pnc`` (``compress_iteration``,
-  ``compress_iterations``, ``kl``);
-- ``CHUNK``: a chunk of tasks is done, per results entry (``program``, ``entry``, ``start``, ``stop``,
-  ``num_tasks``, ``seeds``, ``metrics``: its members' ChunkMetrics, ``per_task``: every task's so far,
-  ``learnt_tasks``: the Evaluation [members, num_tasks] of every task learnt, valid False where not evaluated),
-  after the checkpoint is written;
-- ``DONE``: the program finished (``program``, ``seconds``); ``SKIPPED``: it had finished before (``program``).
-"""
+ProgressReceiver = Callable[[object], None]
+"""The runner's one callback to the outside world (brax's ``progress_fn``), called on the host with one of
+``jcomps.runner.events.EVENTS`` (typed events: each class says what it carries)."""
 
 
-def _silent(event: dict) -> None:
+def _silent(event) -> None:
     del event
 
 
@@ -115,7 +66,7 @@ def run(out: str, description: RunDescription, resume: bool = False, progress_fn
             done = {p.key: results.load(out, p.key) for p in spec.points} if resume else {}
             finished = bool(done) and all(raw is not None for raw in done.values())
             if distributed.all_agree(finished, "deciding what is left to run"):  # every process skips it, or none
-                progress_fn({"event": SKIPPED, "program": spec.label})
+                progress_fn(events.Skipped(spec.label))
             else:
                 done = run_program(out, spec, description, resume, progress_fn, programs)
             raws.update(done)
@@ -195,34 +146,33 @@ class _ProgramRun:
         self.checkpoints = Checkpoints(os.path.join(out, "checkpoints", spec.directory))
         self.next_chunk, self.seconds, self.started = 0, 0.0, time.time()
 
-    def emit(self, kind: str, **fields):
-        """Hands the event ``kind`` of this program, with ``fields``, to the receiver."""
-        self.progress_fn({"event": kind, "program": self.name, **fields})
-
     def receive(self, metrics: dict):
-        """The compiled programs' progress (``jcomps.progress``), as events of its phase's kind."""
-        self.emit(metrics["phase"], **{k: v.item() for k, v in metrics.items() if k != "phase"})
+        """The compiled programs' progress (``jcomps.progress``), as member events (``events.member_event``)."""
+        self.progress_fn(events.member_event(self.name, metrics))
 
     def ensure_compiled(self, part: str, states):
         """Compiles ``part`` of the program for ``states`` and the run's inputs unless done, saying so
         (``COMPILING``, ``STILL_COMPILING`` while it takes, ``COMPILED``)."""
         if part in self.method_program.compiled:
             return
-        where = {"family": self.run.family, "method": self.spec.method, "part": part, "what": PART_NAMES[part]}
-        self.emit(COMPILING, **where)
-        times = self.method_program.compile(part, *self.program.arguments(part, states),
-                                            waiting=lambda seconds: self.emit(STILL_COMPILING, **where,
-                                                                              seconds=seconds))
-        self.emit(COMPILED, **where, **times._asdict())
+        where = dict(program=self.name, family=self.run.family, method=self.spec.method, part=part,
+                     what=PART_NAMES[part])
+        self.progress_fn(events.Compiling(**where))
+        times = self.method_program.compile(
+            part, *self.program.arguments(part, states),
+            waiting=lambda seconds: self.progress_fn(events.StillCompiling(**where, seconds=seconds)))
+        self.progress_fn(events.Compiled(**where, **times._asdict()))
 
     def open(self, resume: bool):
         """The members' states to continue from: the initial ones (the learning program compiled for them), or
         with ``resume`` those of the newest readable checkpoint, with the metrics so far and ``next_chunk``."""
         run = self.run
-        self.emit(START, family=run.family, sequence=run.sequence, num_tasks=run.num_tasks, tasks=list(run.tasks),
-                  seeds=run.seeds, grid_points=len(self.points), padding=self.padding, devices=self.devices,
-                  budget=methods.collection(self.spec.config).budget_for(self.family), chunk=self.chunk, start_task=0,
-                  members=[f"{self.points[p].key} seed {s}" for p, s in zip(self.member_point, self.member_seed)])
+        self.progress_fn(events.Start(
+            program=self.name, family=run.family, sequence=run.sequence, num_tasks=run.num_tasks,
+            tasks=tuple(run.tasks), seeds=run.seeds, grid_points=len(self.points), padding=self.padding,
+            devices=self.devices, budget=methods.collection(self.spec.config).budget_for(self.family),
+            chunk=self.chunk, start_task=0,
+            members=tuple(f"{self.points[p].key} seed {s}" for p, s in zip(self.member_point, self.member_seed))))
         states = self.method_program.init(self.init_keys, self.hparams_host)
         # The learning program is the one a run waits for: it compiles first, alone.
         self.ensure_compiled("learn", states)
@@ -240,7 +190,7 @@ class _ProgramRun:
 
     def _restore(self, states):
         """The states of the newest readable checkpoint (``states`` when there is none), its metrics restored."""
-        warn = lambda message: self.progress_fn({"event": WARNING, "message": message})  # noqa: E731
+        warn = lambda message: self.progress_fn(events.Warned(message))  # noqa: E731
         m = self.metrics
         restored = self.checkpoints.restore_latest(record(states, m.per_task, m.heldout, 0, 0.0), warn)
         if restored is None:
@@ -249,8 +199,8 @@ class _ProgramRun:
         states = self.method_program.put(unflatten(states, tree["states"]))
         m.per_task, m.heldout = unflatten(m.per_task, tree["per_task"]), unflatten(m.heldout, tree["heldout"])
         self.next_chunk, self.seconds = int(tree["counters"]["next_chunk"]), float(tree["counters"]["seconds"])
-        self.emit(RESUMED, step=step, tasks_done=min(self.next_chunk * self.chunk, self.run.num_tasks),
-                  num_tasks=self.run.num_tasks)
+        self.progress_fn(events.Resumed(self.name, step=step, num_tasks=self.run.num_tasks,
+                                        tasks_done=min(self.next_chunk * self.chunk, self.run.num_tasks)))
         return states
 
     def elapsed(self) -> float:
@@ -280,19 +230,19 @@ class _ProgramRun:
         learnt = stop if self.eval_config.learnt_eval == "chunk" or stop == self.run.num_tasks else 0
         learnt_now = self.evaluate(states, c + 1, learnt, heldout_keys(self.member_seed, c + 1), stop).learnt
         self.save(states, c + 1)
-        for key, fields in self.metrics.chunk_events(start, stop, metrics, learnt_now, self.run.seed):
-            self.emit(CHUNK, entry=key, **fields)
+        for event in self.metrics.chunk_events(self.name, start, stop, metrics, learnt_now, self.run.seed):
+            self.progress_fn(event)
         return states
 
     def evaluate(self, states, column: int, learnt: int, keys, after: int):
         """The evaluations of ``states`` (``learnt``: the tasks to evaluate) into column ``column`` of ``heldout``
         (``after``: the tasks learnt, for the progress lines); returns them on the host."""
         self.ensure_compiled("measure", states)
-        self.emit(EVALUATING, after_tasks=after, learnt=learnt, adapts=self.eval_config.heldout_measured)
+        self.progress_fn(events.Evaluating(self.name, after, learnt, adapts=self.eval_config.heldout_measured))
         began = time.time()
         out = to_host(self.program.measure(states, keys, learnt))
         jax.tree.map(lambda dst, src: dst.__setitem__((slice(None), column), src), self.metrics.heldout, out)
-        self.emit(EVALUATED, after_tasks=after, seconds=time.time() - began)
+        self.progress_fn(events.Evaluated(self.name, after, seconds=time.time() - began))
         return out
 
     def save(self, states, chunks_done: int):
@@ -312,7 +262,7 @@ class _ProgramRun:
         if distributed.is_writer():
             for key, raw in raws.items():
                 results.save(self.out, key, raw)
-        self.emit(DONE, seconds=total)
+        self.progress_fn(events.Done(self.name, seconds=total))
         return raws
 
 
@@ -341,17 +291,17 @@ class _HostMetrics:
         """(entry key, the index of its members) of every results entry."""
         return self.slices.items()
 
-    def chunk_events(self, start: int, stop: int, metrics, learnt_now, first_seed: int) -> list:
-        """(entry key, fields) of the ``CHUNK`` event of every results entry (``metrics``: the chunk's ChunkMetrics,
+    def chunk_events(self, program: str, start: int, stop: int, metrics, learnt_now, first_seed: int) -> list:
+        """The ``events.Chunk`` of every results entry of ``program`` (``metrics``: the chunk's ChunkMetrics,
         ``learnt_now``: the learnt tasks' Evaluation after it, both [members, ...])."""
         num_tasks = int(self.after_tasks[-1])
         out = []
         for key, mine in self.entries():
-            seeds = list(range(first_seed, first_seed + mine[0].stop - mine[0].start))
-            out.append((key, dict(start=start, stop=stop, num_tasks=num_tasks, seeds=seeds,
-                                  metrics=jax.tree.map(lambda x: np.asarray(x)[mine], metrics),
-                                  per_task=jax.tree.map(lambda x: x[mine], self.per_task),
-                                  learnt_tasks=jax.tree.map(lambda x: np.asarray(x)[mine], learnt_now))))
+            seeds = tuple(range(first_seed, first_seed + mine[0].stop - mine[0].start))
+            out.append(events.Chunk(program, key, start=start, stop=stop, num_tasks=num_tasks, seeds=seeds,
+                                    metrics=jax.tree.map(lambda x: np.asarray(x)[mine], metrics),
+                                    per_task=jax.tree.map(lambda x: x[mine], self.per_task),
+                                    learnt_tasks=jax.tree.map(lambda x: np.asarray(x)[mine], learnt_now)))
         return out
 
     def raws(self, chunks_done: int, seconds: float, devices: int) -> dict:
