@@ -113,8 +113,8 @@ class EvalConfig:
     heldout_iterations: int = 0
     """Length of the held-out return curve: PPO iterations of adaptation on each held-out task, from the current
     policy, after every chunk (no learning is kept); 0, the default: the held-out meta-test is off but for the
-    zero-shot return (entry 0 of the curve, one batch per held-out task). The paper's curve is 5
-    (``--heldout-iterations 5``); on the first tasks of a sequence it says little (docs/results.md, "The held-out
+    zero-shot return (entry 0 of the curve, one batch per held-out task). SPEC asks for "a fixed small adaptation
+    budget" and the paper gives none (L258); ours is 5 when on (``--heldout-iterations 5``); on the first tasks of a sequence it says little (docs/results.md, "The held-out
     meta-test"), and the studies that measure it ask for it."""
     heldout_budget: Optional[int] = None
     """Cap of the held-out iterations-to-success (on tasks never trained on): the same adaptation runs up to this

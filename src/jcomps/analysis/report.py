@@ -13,8 +13,8 @@ Metrics (SPEC, "Metrics a user expects"):
 - backward transfer after task i: (c − a)/(b − a) with a, b, c averaged over the previous k tasks j: a the
   return of task j's first iteration, b of its last, c of the current policy evaluated on task j;
 - held-out meta-test, measured at the start and after every chunk of tasks from the policy of that moment (no
-  learning kept): iterations-to-success on each held-out task within a cap (the paper's measure), and the mean
-  return on the held-out tasks after a fixed number of PPO iterations;
+  learning kept): iterations-to-success on each held-out task within a cap, and the mean return on the held-out
+  tasks after a fixed number of PPO iterations (SPEC's "fixed small adaptation budget"; the paper gives none, L258);
 - significance of a baseline method (``comps`` by default) against each other method on the per-seed mean
   iterations-to-success: a two-sided independent t-test, and the same test by bootstrap (30,000 resamples of the
   seeds under the null of equal means, Efron & Tibshirani 16.4);
