@@ -5,7 +5,7 @@ from starting ``run_sequence.py`` to its first training iteration, cold and from
 ``experiments/run_sequence.py`` does with its defaults (``jcomps.runner.programs.Programs``: members sharded over the
 devices, the default evaluations) and times apart, for each program (``jcomps.runner.programs.PARTS``: ``init``,
 ``learn``: one task's learning, the program a run waits for, ``evaluate_task``: the evaluations after each task,
-``heldout``: the held-out meta-test and learnt tasks after each chunk):
+``measure``: the held-out meta-test and learnt tasks after each chunk):
 
 - ``trace_s``: Python tracing to a jaxpr (``jit(f).trace``);
 - ``lower_s``: lowering to StableHLO (``.lower()``);
@@ -45,7 +45,7 @@ def bench_programs(family_name: str, method: str, seeds: int, devices: int, num_
 
     from jcomps import continual, envs, methods
     from jcomps.runner import grid as grids
-    from jcomps.runner.members import eval_keys, method_keys, padded_seeds
+    from jcomps.runner.members import method_keys, padded_seeds, task_eval_keys, task_sequences
     from jcomps.runner.programs import Programs
 
     family = envs.make(family_name)
@@ -54,21 +54,15 @@ def bench_programs(family_name: str, method: str, seeds: int, devices: int, num_
     spec, = grids.programs(method, config, ())
     program = Programs().get(method, family_name, spec.config, eval_config, 2, devices)
     member_seeds = list(range(padded_seeds(seeds, devices)))
-    values = np.stack([envs.sequence_values(family, "non-stationary", s, num_tasks) for s in member_seeds])
-    sequences = program.put(jax.tree.map(lambda x: x.reshape((len(member_seeds), num_tasks) + x.shape[1:]),
-                                         family.tasks(values.reshape(-1))))
-    keys = program.put(eval_keys(member_seeds, 1))
-    index = program.put(np.arange(len(member_seeds), dtype=np.int32))
+    # The run's inputs as the runner binds them (``_ProgramRun``), and each part's arguments from them.
+    bound = program.bind(task_sequences(family, "non-stationary", member_seeds, num_tasks),
+                         np.arange(len(member_seeds), dtype=np.int32), task_eval_keys(member_seeds), {},
+                         jax.device_get(envs.held_out(family)))
     rngs = method_keys(member_seeds)
     states = program.init(rngs)
-    heldout = envs.held_out(family)
-    position = np.int32(0)
-    args = {
-        "init": (program._init, (rngs, {})),
-        "learn": (program._learn, (states, sequences, position, index, {})),
-        "evaluate_task": (program._evaluate_task, (states, sequences, position, keys, {})),
-        "heldout": (program._heldout, (states, heldout, keys, sequences, position, keys, index, {})),
-    }
+    args = {"init": (program._init, (rngs, {}))}
+    args.update({part: (getattr(program, "_" + part), bound.arguments(part, states))
+                 for part in ("learn", "evaluate_task", "measure")})
     lines = []
     for name in programs:
         if name not in args:
@@ -125,7 +119,7 @@ def main():
     parser.add_argument("--mode", choices=("programs", "start"), default="programs")
     parser.add_argument("--families", nargs="+", default=["cheetah_vel", "ant_goal"])
     parser.add_argument("--methods", nargs="+", default=["comps", "ppo_tl"])
-    parser.add_argument("--programs", nargs="+", default=["init", "learn", "evaluate_task", "heldout"])
+    parser.add_argument("--programs", nargs="+", default=["init", "learn", "evaluate_task", "measure"])
     parser.add_argument("--until", choices=("first", "end"), default="end",
                         help="start mode: stop each run at its first training iteration, or let it finish")
     parser.add_argument("--seeds", type=int, default=4)

@@ -45,7 +45,7 @@ def bench(family_name: str, method: str, members: int, tasks: int, budget: int, 
     import numpy as np
 
     from jcomps import continual, envs, methods
-    from jcomps.runner.members import eval_keys, method_keys
+    from jcomps.runner.members import method_keys, task_eval_keys, task_sequences
     from jcomps.runner.programs import Programs
     from jcomps.training import acting, ppo
 
@@ -57,13 +57,12 @@ def bench(family_name: str, method: str, members: int, tasks: int, budget: int, 
     # The runner's chunk program, exactly as run_sequence.py builds it (one chunk = all the tasks).
     program = Programs().get(method, family_name, config, eval_config, tasks, 1)
     seeds = list(range(members))
-    values = np.stack([envs.sequence_values(family, "non-stationary", 0, tasks) for _ in seeds])
-    seqs = program.put(jax.tree.map(lambda x: x.reshape((members, tasks) + x.shape[1:]),
-                                    family.tasks(values.reshape(-1))))
-    keys = program.put(eval_keys(seeds, 1))
-    idx = program.put(np.arange(members, dtype=np.int32))
+    # Every member learns seed 0's sequence (the same work per member), bound as the runner binds a run's inputs.
+    bound = program.bind(task_sequences(family, "non-stationary", [0] * members, tasks),
+                         np.arange(members, dtype=np.int32), task_eval_keys(seeds), {},
+                         jax.device_get(envs.held_out(family)))
     states = program.init(method_keys(seeds))
-    chunk_args = (states, seqs, 0, program.chunk, keys, idx)
+    chunk_args = (states, 0, program.chunk)
 
     # The simulator alone, and the two parts of an iteration, on the same members and batch.
     task = envs.task_at(family, 0)
@@ -84,7 +83,7 @@ def bench(family_name: str, method: str, members: int, tasks: int, budget: int, 
     update = jax.jit(jax.vmap(lambda p, o, tr, k: ppo.ppo_update(config.ppo, optimizer, p, o, tr, k)[:3]))
     traj = jax.block_until_ready(roll(params, member_keys)) if parts else None
 
-    cases = {"raw": (raw, (jax.random.PRNGKey(2), actions)), "program": (program.learn_chunk, chunk_args)}
+    cases = {"raw": (raw, (jax.random.PRNGKey(2), actions)), "program": (bound.learn_chunk, chunk_args)}
     if parts:
         cases.update(rollout=(roll, (params, member_keys)), update=(update, (params, opt_state, traj, member_keys)))
     first = {name: _seconds(fn, *args)[0] for name, (fn, args) in cases.items()}

@@ -179,11 +179,18 @@ def test_stores_start_empty_and_hold_what_is_written():
     chex.assert_trees_all_equal(jax.tree.map(lambda x: x[1], full["seq"].skilled), full["skilled"])
     chex.assert_trees_all_equal(jax.tree.map(lambda x: x[1], full["seq"].offpolicy), full["off"])
     assert np.all(np.isneginf(np.asarray(full["seq"].skilled.returns)[[0, 2]]))
-    # The replay slot holds the batch's T·B transitions, time-major; the other slot is untouched.
-    flat = buffers.transitions_of(batch)
-    for k, v in flat.items():
-        np.testing.assert_array_equal(getattr(full["trans"], k)[0], v)
-    np.testing.assert_array_equal(full["trans"].count, [T * B, 0])
+    # The replay slot holds the batch's T·B transitions, time-major (row t·B + b is step t of trajectory b), each
+    # step's next observation the following step's, the last one's the observation reached; the other slot is
+    # untouched.
+    replay = full["trans"]
+    for t in range(T):
+        for b in range(B):
+            row = t * B + b
+            np.testing.assert_array_equal(replay.obs[0, row], batch.obs[t, b])
+            np.testing.assert_array_equal(replay.reward[0, row], batch.reward[t, b])
+            np.testing.assert_array_equal(replay.next_obs[0, row],
+                                          batch.obs[t + 1, b] if t + 1 < T else batch.last_obs[b])
+    np.testing.assert_array_equal(replay.count, [T * B, 0])
 
 
 def test_stores_from_an_example_are_those_sized_by_hand():

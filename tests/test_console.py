@@ -198,3 +198,11 @@ def test_console_logs_the_same_scalars_to_an_offline_wandb_run(console, tmp_path
     np.testing.assert_allclose([logged[k] for k in expected], list(expected.values()), rtol=1e-6)
     axes = wandb_file.step_metrics(path)
     assert axes["iterations_to_success/*"] == "task" and axes["lifelong_return/seed1"] == "iteration/seed1"
+
+
+def test_every_kind_of_event_is_shown_or_deliberately_left_out(console, tmp_path):
+    show = console.Console(lambda line: None, str(tmp_path))
+    assert len({cls.kind for cls in events.EVENTS}) == len(events.EVENTS)  # one kind per class: JSON round trips
+    # The library path's task ends (continual.run_tasks) and a method's own phases have no line of their own.
+    assert set(events.EVENTS) - set(show.handlers) - set(show.member_handlers) == {events.TaskEnd,
+                                                                                  events.MemberProgress}

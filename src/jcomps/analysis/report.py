@@ -192,7 +192,7 @@ def _heldout_summary(description: RunDescription, raw) -> dict:
         "iterations_to_success": raw.measured.heldout.iterations.astype(int).tolist(),
         "iterations_to_success_mean": raw.measured.heldout.iterations.mean(axis=2).round(3).tolist(),
         "solved": raw.measured.heldout.solved.astype(bool).tolist(),
-        "budget": int(description.eval.heldout_budget or 0),
+        "budget": int(description.eval.heldout_budget),  # resolved when the run was described or read
     }
 
 

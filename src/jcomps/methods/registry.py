@@ -150,7 +150,7 @@ def resolve_config(name: str, family: Family | str, *, stored: Optional[Mapping]
 
 
 def make(name: str, family: Family, config=None, progress_fn: Optional[ProgressFn] = None) -> Method:
-    """Method ``name`` (one of ``METHODS``) on ``family`` with ``config`` (default: ``default_config(name,
+    """Method ``name`` (one of ``names()``) on ``family`` with ``config`` (default: ``default_config(name,
     family)``, the paper's defaults with the family's calibrated PPO settings).
 
     ``progress_fn`` (``jcomps.progress``; e.g. ``progress.host(print)``), if given, gets the metrics of every RL

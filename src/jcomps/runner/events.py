@@ -3,9 +3,10 @@
 ``jcomps.runner.experiment.run(..., progress_fn=...)`` calls ``progress_fn(event)`` on the host with one of the
 ``EVENTS`` (brax's ``progress_fn``, typed): the runner's own events say what a program is doing (``Start``,
 ``Compiling`` … ``Done``), the *member* events (``MEMBER_EVENTS``) carry the compiled programs' progress inside a
-chunk, one member at a time (``jcomps.progress``'s phases, built by ``member_event``). Every event names its
-``program`` (the grid program's label, ``jcomps.runner.grid.ProgramSpec.label``) but ``Warned``; its ``kind`` is
-its name in the ``jcomps.progress`` and JSON vocabulary.
+chunk, one member at a time (``jcomps.progress``'s phases, built by ``member_event``). Every event but ``Warned``
+names its ``program``: the results entry of a program without a grid (``comps``, ``comps[learning_rate=0.001]``),
+or ``"<label>, <n> grid points"`` for a program over several; its ``kind`` is its name in the ``jcomps.progress``
+and JSON vocabulary.
 
 With several processes (``jcomps.runner.distributed``) the member events of processes other than 0 cross to
 process 0 as JSON (``to_json`` / ``from_json``); the runner's own events never leave their process. ``jcomps.console``

@@ -152,7 +152,7 @@ class _ProgramRun:
 
     def ensure_compiled(self, part: str, states):
         """Compiles ``part`` of the program for ``states`` and the run's inputs unless done, saying so
-        (``COMPILING``, ``STILL_COMPILING`` while it takes, ``COMPILED``)."""
+        (``events.Compiling``, ``events.StillCompiling`` while it takes, ``events.Compiled``)."""
         if part in self.method_program.compiled:
             return
         where = dict(program=self.name, family=self.run.family, method=self.spec.method, part=part,
