@@ -29,14 +29,13 @@ import sys
 import threading
 import time
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, HERE)  # merge_runs, the script beside this one
+from jcomps import envs
+from jcomps.analysis import paper, reproduction
+from jcomps.console import clock
+from jcomps.runner import files, hostdevices, results, rundir
+from jcomps.runner.files import RunError
 
-from jcomps import envs  # noqa: E402
-from jcomps.console import clock  # noqa: E402
-from jcomps.analysis import paper, reproduction  # noqa: E402
-from jcomps.runner import files, hostdevices, results, rundir  # noqa: E402
-from jcomps.runner.files import RunError  # noqa: E402
+HERE = os.path.dirname(os.path.abspath(__file__))
 
 STUDY = "study.json"
 FORMAT = 1
@@ -236,7 +235,7 @@ def _schedule(args, proto, todo, running, failed, lock, began) -> None:
 def merge_sequence(args, sequence: str, partial: bool):
     """Merges the runs of ``sequence`` into ``OUT/<sequence>/merged`` (rewritten each time) and returns its
     results (None when CoMPS has nothing to report yet). With ``partial``, the runs with finished tasks."""
-    from merge_runs import merge
+    from jcomps.analysis.merge import merge
 
     proto = args.study["protocol"]
     sources = []

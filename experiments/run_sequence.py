@@ -73,7 +73,7 @@ import numpy as np  # noqa: E402
 
 from jcomps import configs, continual, envs, methods  # noqa: E402
 from jcomps.analysis import report  # noqa: E402
-from jcomps.runner import checkpoint, compile_cache, description, distributed, experiment, hostdevices, rundir  # noqa: E402  # noqa: E402
+from jcomps.runner import checkpoint, compile_cache, description, distributed, experiment, hostdevices, rundir  # noqa: E402
 from jcomps.runner.files import RunError  # noqa: E402
 from jcomps.runner.programs import Programs  # noqa: E402
 
