@@ -314,11 +314,11 @@ def test_grid_under_slurm(grid_reference, tiny_options, tmp_path):
     _same_results(grid_reference, out)
 
 
-def _start(args, process_id: int, port: int) -> subprocess.Popen:
+def _start(args, process_id: int, port: int, **env) -> subprocess.Popen:
     """Process ``process_id`` of a run of two on this machine."""
     return _group([sys.executable, SCRIPT] + args + ["--coordinator", f"localhost:{port}", "--num-processes", "2",
                                                      "--process-id", str(process_id), "--heartbeat-timeout", "30"],
-                  _env(JCOMPS_LOCAL_PROCESSES="2"))
+                  _env(JCOMPS_LOCAL_PROCESSES="2", **env))
 
 
 def test_two_processes_killed_and_resumed_give_the_results_of_one(full_run, full_run_argv, tmp_path):
@@ -328,7 +328,9 @@ def test_two_processes_killed_and_resumed_give_the_results_of_one(full_run, full
     array for array. Process 0 alone writes the report. Then a resume as one process is refused."""
     out = tmp_path / "two"
     port = _free_port()
-    procs = [_start(full_run_argv + ["--devices", "1", "--out", str(out)], i, port) for i in (0, 1)]
+    # A compile cache of the test's own, so that the resume loads what the killed run compiled, as a user's does.
+    cache = {"JCOMPS_COMPILE_CACHE": str(tmp_path / "xla")}
+    procs = [_start(full_run_argv + ["--devices", "1", "--out", str(out)], i, port, **cache) for i in (0, 1)]
     try:
         step = out / "checkpoints" / "comps" / "1"
         deadline = time.time() + TIMEOUT
@@ -346,9 +348,10 @@ def test_two_processes_killed_and_resumed_give_the_results_of_one(full_run, full
     assert stopped < 60, f"process 0 took {stopped:.0f} s to stop"
     assert "process 0 of 2: 1 of 2 devices" in out0 and not (out / "raw" / "comps.npz").exists()
 
-    proc = _run(["bash", LAUNCHER, "2", "--", "--out", str(out), "--resume"])
+    proc = _run(["bash", LAUNCHER, "2", "--", "--out", str(out), "--resume"], _env(**cache))
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "resumed from checkpoint 1" in proc.stdout
+    assert "program ready" in proc.stdout and "from the compile cache" in proc.stdout  # comps's, compiled before
     _same_results(full_run, out)
     stored, ref = (json.loads((d / "run.json").read_text()) for d in (out, full_run))
     assert stored.pop("processes") == 2 and ref.pop("processes") == 1
