@@ -53,6 +53,9 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     try:
         panels = [(title, [read_cell(spec) for spec in specs]) for title, *specs in args.panel]
+        for title, cells in panels:
+            if not cells:
+                raise ValueError(f"--panel {title!r} has no LABEL=DIR after its title")
     except ValueError as err:
         print(f"plot_cells.py: error: {err}", file=sys.stderr)
         return 2

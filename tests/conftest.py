@@ -48,19 +48,19 @@ settings.register_profile("thorough", deadline=None, max_examples=500)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "fast"))
 
 
-def _load_script(name: str):
-    """``experiments/<name>.py`` loaded as a module."""
-    path = pathlib.Path(__file__).resolve().parents[1] / "experiments" / f"{name}.py"
+def _load_script(name: str, folder: str = "experiments"):
+    """``<folder>/<name>.py`` loaded as a module."""
+    path = pathlib.Path(__file__).resolve().parents[1] / folder / f"{name}.py"
     spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
 
 
-def _script_fixture(fixture_name: str, script: str, doc: str):
-    """A session fixture ``fixture_name``: ``experiments/<script>.py`` loaded as a module."""
+def _script_fixture(fixture_name: str, script: str, doc: str, folder: str = "experiments"):
+    """A session fixture ``fixture_name``: ``<folder>/<script>.py`` loaded as a module."""
     def fixture():
-        return _load_script(script)
+        return _load_script(script, folder)
 
     fixture.__doc__ = doc
     return pytest.fixture(scope="session", name=fixture_name)(fixture)
@@ -149,6 +149,8 @@ merge_runs = _script_fixture("merge_runs", "merge_runs", "Merging runs (its ``me
 render = _script_fixture("render", "render", "Policy replays (its ``render``).")
 reproduce = _script_fixture("reproduce", "reproduce", "A family's experiments of the paper (its ``main``).")
 report_script = _script_fixture("report_script", "report", "Regenerating a run directory's report (its ``main``).")
+plot_cells = _script_fixture("plot_cells", "plot_cells", "The figure of several run directories (its ``main``).",
+                             folder="scripts")
 
 
 # The runner's tiny end-to-end run, shared by the tests of the host loop and of the run directory

@@ -1,20 +1,8 @@
 """scripts/plot_cells.py: the per-task figure of several run directories, and its errors."""
 
-import importlib.util
 import json
-import os
 
 import pytest
-
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-
-
-@pytest.fixture(scope="module")
-def plot_cells():
-    spec = importlib.util.spec_from_file_location("plot_cells", os.path.join(ROOT, "scripts", "plot_cells.py"))
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def _run_dir(path, methods):
@@ -24,7 +12,7 @@ def _run_dir(path, methods):
     return path
 
 
-def test_reads_each_cell_and_draws_one_panel_per_group(plot_cells, tmp_path, capsys):
+def test_reads_each_cell_and_draws_one_panel_per_group(plot_cells, tmp_path):
     a = _run_dir(tmp_path / "a", {"comps": [[10, 20, 30], [12, 22, 34]]})
     b = _run_dir(tmp_path / "b", {"comps": [[1, 2, 3]], "ppo": [[4, 5, 6]]})
     label, its = plot_cells.read_cell(f"x={a}")
@@ -46,3 +34,8 @@ def test_bad_cells_exit_2_naming_the_file(plot_cells, tmp_path, capsys, spec, me
     spec = spec.format(missing=tmp_path / "nothing", two=two)
     assert plot_cells.main(["--out", str(tmp_path / "f.png"), "--panel", "A", spec]) == 2
     assert message in capsys.readouterr().err
+
+
+def test_a_panel_without_cells_exits_2_naming_it(plot_cells, tmp_path, capsys):
+    assert plot_cells.main(["--out", str(tmp_path / "f.png"), "--panel", "Empty"]) == 2
+    assert "--panel 'Empty' has no LABEL=DIR" in capsys.readouterr().err
